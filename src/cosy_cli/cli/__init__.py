@@ -1,0 +1,1 @@
+"""Click commands over the stage modules (no logic here)."""

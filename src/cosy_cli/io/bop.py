@@ -1,0 +1,570 @@
+"""Readers and writers for the BOP file formats (thodan/bop_toolkit ``docs/bop_datasets_format.md``).
+
+Every reader validates what it reads and raises :class:`~cosy_cli.errors.CosyError` naming the
+file, the key or row, and what was expected. Every writer is atomic (temp file + rename).
+
+Units and frames
+----------------
+* Lengths in BOP files are millimetres: translations, model vertices, diameters.
+* ``cam_R_m2c``/``cam_t_m2c`` give ``T_cam_obj`` (maps model points into the camera frame).
+* ``cam_R_w2c``/``cam_t_w2c`` give ``T_cam_world`` (maps world points into the camera frame).
+* Depth images hold ``depth_mm / depth_scale``: multiply by ``depth_scale`` to get millimetres.
+* Cameras are OpenCV cameras: x right, y down, looking along +z.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+import pandas as pd
+
+from ..errors import CosyError
+from . import atomic
+
+RESULTS_COLUMNS = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+GT_INFO_KEYS = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
+
+
+# --------------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------------
+def load_json(path: str | Path) -> Any:
+    """Read a JSON file; a missing file or a syntax error becomes a :class:`CosyError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise CosyError("file not found", path=path)
+    try:
+        with open(path, "r", encoding="utf-8") as f:
+            return json.load(f)
+    except json.JSONDecodeError as e:
+        raise CosyError(f"invalid JSON (line {e.lineno}, column {e.colno}: {e.msg})", path=path) from None
+    except UnicodeDecodeError as e:
+        raise CosyError(f"not a UTF-8 text file ({e.reason})", path=path) from None
+
+
+def _numbers(value: Any, n: int, path: Path, where: str, what: str) -> np.ndarray:
+    """``value`` as a float64 vector of exactly ``n`` finite numbers, else a CosyError."""
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise CosyError(f"{what}: expected {n} numbers, got {value!r:.80}", path=path, where=where) from None
+    if arr.size != n:
+        raise CosyError(f"{what}: expected {n} numbers, got {arr.size}", path=path, where=where)
+    if not np.all(np.isfinite(arr)):
+        raise CosyError(f"{what}: non-finite value in {arr.tolist()}", path=path, where=where)
+    return arr
+
+
+def _int_key(key: str, path: Path) -> int:
+    try:
+        return int(key)
+    except (TypeError, ValueError):
+        raise CosyError(f"key {key!r} is not an integer id", path=path) from None
+
+
+def _require(d: Any, key: str, path: Path, where: str) -> Any:
+    if not isinstance(d, Mapping):
+        raise CosyError(f"expected an object with key '{key}', got {type(d).__name__}", path=path, where=where)
+    if key not in d:
+        raise CosyError(f"missing key '{key}'", path=path, where=where)
+    return d[key]
+
+
+def _top_dict(data: Any, path: Path) -> dict:
+    if not isinstance(data, dict):
+        raise CosyError(f"expected a JSON object keyed by id, got {type(data).__name__}", path=path)
+    return data
+
+
+def pose_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 pose from a 3x3 rotation and a translation (same length unit as ``t``)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def rotation_errors(R: np.ndarray) -> np.ndarray:
+    """Max-abs deviation of ``R^T R`` from identity, +inf where det(R) <= 0. R: (..., 3, 3)."""
+    R = np.asarray(R, dtype=np.float64)
+    dev = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2))
+    return np.where(np.linalg.det(R) > 0, dev, np.inf)
+
+
+ROTATION_TOL = 1e-3  # tolerated |R^T R - I| (files store rotations with 6-10 significant digits)
+
+
+def _fmt(x: float) -> float:
+    """Floats for JSON output, rounded to keep files readable but exact to well below 1e-6 mm."""
+    return float(f"{float(x):.10g}")
+
+
+def _floats(a: Iterable[float]) -> list[float]:
+    return [_fmt(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)]
+
+
+# --------------------------------------------------------------------------------------------
+# camera.json and scene_camera.json
+# --------------------------------------------------------------------------------------------
+@dataclass
+class CameraInfo:
+    """Intrinsics of ``camera.json`` (the dataset's default sensor)."""
+
+    K: np.ndarray  # (3, 3), pixels
+    width: int
+    height: int
+    depth_scale: float = 1.0
+
+
+def read_camera(path: str | Path) -> CameraInfo:
+    path = Path(path)
+    d = load_json(path)
+    if not isinstance(d, dict):
+        raise CosyError("expected a JSON object with fx, fy, cx, cy, width, height", path=path)
+    vals = {}
+    for k in ("fx", "fy", "cx", "cy", "width", "height"):
+        vals[k] = float(_numbers(_require(d, k, path, "camera"), 1, path, "camera", k)[0])
+    K = np.array([[vals["fx"], 0, vals["cx"]], [0, vals["fy"], vals["cy"]], [0, 0, 1.0]])
+    depth_scale = float(_numbers(d.get("depth_scale", 1.0), 1, path, "camera", "depth_scale")[0])
+    return CameraInfo(K=K, width=int(vals["width"]), height=int(vals["height"]), depth_scale=depth_scale)
+
+
+def write_camera(path: str | Path, cam: CameraInfo) -> None:
+    K = cam.K
+    atomic.write_json(path, {
+        "cx": _fmt(K[0, 2]), "cy": _fmt(K[1, 2]), "depth_scale": _fmt(cam.depth_scale),
+        "fx": _fmt(K[0, 0]), "fy": _fmt(K[1, 1]), "height": int(cam.height), "width": int(cam.width),
+    })
+
+
+@dataclass
+class SceneCamera:
+    """One image's camera (``scene_camera.json`` entry)."""
+
+    K: np.ndarray  # (3, 3) pixels
+    depth_scale: float = 1.0  # depth image value x depth_scale = mm
+    T_cam_world: np.ndarray | None = None  # (4, 4) mm, from cam_R_w2c / cam_t_w2c
+    extra: dict = field(default_factory=dict)  # other keys, kept for round trips
+
+
+def read_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
+    path = Path(path)
+    data = _top_dict(load_json(path), path)
+    out: dict[int, SceneCamera] = {}
+    for key, entry in data.items():
+        im_id = _int_key(key, path)
+        where = f"image {key}"
+        K = _numbers(_require(entry, "cam_K", path, where), 9, path, where, "cam_K").reshape(3, 3)
+        depth_scale = float(_numbers(entry.get("depth_scale", 1.0), 1, path, where, "depth_scale")[0])
+        T = None
+        has_R, has_t = "cam_R_w2c" in entry, "cam_t_w2c" in entry
+        if has_R != has_t:
+            missing = "cam_t_w2c" if has_R else "cam_R_w2c"
+            raise CosyError(f"'{missing}' missing (cam_R_w2c and cam_t_w2c come together)", path=path, where=where)
+        if has_R:
+            T = pose_from_Rt(_numbers(entry["cam_R_w2c"], 9, path, where, "cam_R_w2c"),
+                             _numbers(entry["cam_t_w2c"], 3, path, where, "cam_t_w2c"))
+        extra = {k: v for k, v in entry.items() if k not in ("cam_K", "depth_scale", "cam_R_w2c", "cam_t_w2c")}
+        out[im_id] = SceneCamera(K=K, depth_scale=depth_scale, T_cam_world=T, extra=extra)
+    return dict(sorted(out.items()))
+
+
+def write_scene_camera(path: str | Path, cams: Mapping[int, SceneCamera]) -> None:
+    data = {}
+    for im_id in sorted(cams):
+        c = cams[im_id]
+        e: dict[str, Any] = {"cam_K": _floats(c.K), "depth_scale": _fmt(c.depth_scale)}
+        if c.T_cam_world is not None:
+            e["cam_R_w2c"] = _floats(c.T_cam_world[:3, :3])
+            e["cam_t_w2c"] = _floats(c.T_cam_world[:3, 3])
+        e.update(c.extra)
+        data[str(int(im_id))] = e
+    atomic.write_json(path, data)
+
+
+# --------------------------------------------------------------------------------------------
+# scene_gt.json and scene_gt_info.json
+# --------------------------------------------------------------------------------------------
+@dataclass
+class GtInstance:
+    obj_id: int
+    T_cam_obj: np.ndarray  # (4, 4), translation in mm
+
+
+def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
+    path = Path(path)
+    data = _top_dict(load_json(path), path)
+    out: dict[int, list[GtInstance]] = {}
+    for key, insts in data.items():
+        im_id = _int_key(key, path)
+        if not isinstance(insts, list):
+            raise CosyError(f"expected a list of instances, got {type(insts).__name__}", path=path, where=f"image {key}")
+        lst = []
+        for i, inst in enumerate(insts):
+            where = f"image {key}, instance {i}"
+            obj_id = _require(inst, "obj_id", path, where)
+            if not isinstance(obj_id, int) or isinstance(obj_id, bool):
+                raise CosyError(f"obj_id: expected an integer, got {obj_id!r}", path=path, where=where)
+            R = _numbers(_require(inst, "cam_R_m2c", path, where), 9, path, where, "cam_R_m2c")
+            t = _numbers(_require(inst, "cam_t_m2c", path, where), 3, path, where, "cam_t_m2c")
+            lst.append(GtInstance(obj_id=obj_id, T_cam_obj=pose_from_Rt(R, t)))
+        out[im_id] = lst
+    return dict(sorted(out.items()))
+
+
+def write_scene_gt(path: str | Path, gt: Mapping[int, list[GtInstance]]) -> None:
+    data = {
+        str(int(im_id)): [
+            {"cam_R_m2c": _floats(g.T_cam_obj[:3, :3]), "cam_t_m2c": _floats(g.T_cam_obj[:3, 3]), "obj_id": int(g.obj_id)}
+            for g in gt[im_id]
+        ]
+        for im_id in sorted(gt)
+    }
+    atomic.write_json(path, data)
+
+
+@dataclass
+class GtInfo:
+    bbox_obj: np.ndarray  # (4,) x, y, w, h in pixels (-1s when the object is outside the image)
+    bbox_visib: np.ndarray  # (4,)
+    px_count_all: int
+    px_count_valid: int
+    px_count_visib: int
+    visib_fract: float
+
+
+def read_scene_gt_info(path: str | Path) -> dict[int, list[GtInfo]]:
+    path = Path(path)
+    data = _top_dict(load_json(path), path)
+    out: dict[int, list[GtInfo]] = {}
+    for key, insts in data.items():
+        im_id = _int_key(key, path)
+        if not isinstance(insts, list):
+            raise CosyError(f"expected a list of instances, got {type(insts).__name__}", path=path, where=f"image {key}")
+        lst = []
+        for i, inst in enumerate(insts):
+            where = f"image {key}, instance {i}"
+            vals = {}
+            for k in GT_INFO_KEYS:
+                n = 4 if k.startswith("bbox") else 1
+                vals[k] = _numbers(_require(inst, k, path, where), n, path, where, k)
+            lst.append(GtInfo(
+                bbox_obj=vals["bbox_obj"], bbox_visib=vals["bbox_visib"],
+                px_count_all=int(vals["px_count_all"][0]), px_count_valid=int(vals["px_count_valid"][0]),
+                px_count_visib=int(vals["px_count_visib"][0]), visib_fract=float(vals["visib_fract"][0]),
+            ))
+        out[im_id] = lst
+    return dict(sorted(out.items()))
+
+
+def write_scene_gt_info(path: str | Path, info: Mapping[int, list[GtInfo]]) -> None:
+    data = {
+        str(int(im_id)): [
+            {
+                "bbox_obj": [int(round(v)) for v in g.bbox_obj], "bbox_visib": [int(round(v)) for v in g.bbox_visib],
+                "px_count_all": int(g.px_count_all), "px_count_valid": int(g.px_count_valid),
+                "px_count_visib": int(g.px_count_visib), "visib_fract": _fmt(g.visib_fract),
+            }
+            for g in info[im_id]
+        ]
+        for im_id in sorted(info)
+    }
+    atomic.write_json(path, data)
+
+
+# --------------------------------------------------------------------------------------------
+# models_info.json
+# --------------------------------------------------------------------------------------------
+@dataclass
+class ModelInfo:
+    """One entry of ``models_info.json``; lengths in mm."""
+
+    diameter: float
+    min_xyz: np.ndarray  # (3,)
+    size_xyz: np.ndarray  # (3,)
+    symmetries_discrete: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # (K, 4, 4), t in mm
+    symmetries_continuous: list[dict] = field(default_factory=list)  # [{"axis": (3,), "offset": (3,) mm}]
+    extra: dict = field(default_factory=dict)
+
+
+def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
+    path = Path(path)
+    data = _top_dict(load_json(path), path)
+    out: dict[int, ModelInfo] = {}
+    for key, e in data.items():
+        obj_id = _int_key(key, path)
+        where = f"object {key}"
+        diameter = float(_numbers(_require(e, "diameter", path, where), 1, path, where, "diameter")[0])
+        if diameter <= 0:
+            raise CosyError(f"diameter must be > 0 mm, got {diameter}", path=path, where=where)
+        mins = np.array([float(_numbers(_require(e, f"min_{a}", path, where), 1, path, where, f"min_{a}")[0]) for a in "xyz"])
+        sizes = np.array([float(_numbers(_require(e, f"size_{a}", path, where), 1, path, where, f"size_{a}")[0]) for a in "xyz"])
+        disc = e.get("symmetries_discrete", [])
+        if not isinstance(disc, list):
+            raise CosyError("symmetries_discrete: expected a list of 16-number lists", path=path, where=where)
+        S = np.stack([_numbers(s, 16, path, where, f"symmetries_discrete[{j}]").reshape(4, 4) for j, s in enumerate(disc)]) \
+            if disc else np.zeros((0, 4, 4))
+        if len(S):
+            bad = ~np.allclose(S[:, 3], [0, 0, 0, 1], atol=1e-6)
+            if bad:
+                raise CosyError("symmetries_discrete: last row of each 4x4 must be 0 0 0 1", path=path, where=where)
+        cont = e.get("symmetries_continuous", [])
+        if not isinstance(cont, list):
+            raise CosyError("symmetries_continuous: expected a list of {axis, offset}", path=path, where=where)
+        conts = []
+        for j, c in enumerate(cont):
+            axis = _numbers(_require(c, "axis", path, f"{where}, symmetries_continuous[{j}]"), 3, path, where, "axis")
+            if np.linalg.norm(axis) < 1e-9:
+                raise CosyError(f"symmetries_continuous[{j}].axis is zero", path=path, where=where)
+            offset = _numbers(c.get("offset", [0, 0, 0]), 3, path, where, "offset")
+            conts.append({"axis": axis, "offset": offset})
+        known = {"diameter", "symmetries_discrete", "symmetries_continuous"} | {f"{p}_{a}" for p in ("min", "size") for a in "xyz"}
+        extra = {k: v for k, v in e.items() if k not in known}
+        out[obj_id] = ModelInfo(diameter, mins, sizes, S, conts, extra)
+    return dict(sorted(out.items()))
+
+
+def write_models_info(path: str | Path, infos: Mapping[int, ModelInfo]) -> None:
+    data = {}
+    for obj_id in sorted(infos):
+        m = infos[obj_id]
+        e: dict[str, Any] = {"diameter": _fmt(m.diameter)}
+        for i, a in enumerate("xyz"):
+            e[f"min_{a}"] = _fmt(m.min_xyz[i])
+        for i, a in enumerate("xyz"):
+            e[f"size_{a}"] = _fmt(m.size_xyz[i])
+        if len(m.symmetries_discrete):
+            e["symmetries_discrete"] = [_floats(S) for S in m.symmetries_discrete]
+        if m.symmetries_continuous:
+            e["symmetries_continuous"] = [{"axis": _floats(c["axis"]), "offset": _floats(c["offset"])}
+                                          for c in m.symmetries_continuous]
+        e.update(m.extra)
+        data[str(int(obj_id))] = e
+    atomic.write_json(path, data)
+
+
+# --------------------------------------------------------------------------------------------
+# test targets
+# --------------------------------------------------------------------------------------------
+TARGET_COLUMNS = ["scene_id", "im_id", "obj_id", "inst_count"]
+
+
+def read_targets(path: str | Path) -> pd.DataFrame:
+    """``test_targets_bop19.json``: a list of {scene_id, im_id, obj_id, inst_count}."""
+    path = Path(path)
+    data = load_json(path)
+    if not isinstance(data, list):
+        raise CosyError("expected a JSON list of {im_id, inst_count, obj_id, scene_id}", path=path)
+    rows = []
+    for i, e in enumerate(data):
+        where = f"entry {i}"
+        row = []
+        for k in TARGET_COLUMNS:
+            v = _require(e, k, path, where)
+            if not isinstance(v, int) or isinstance(v, bool):
+                raise CosyError(f"{k}: expected an integer, got {v!r}", path=path, where=where)
+            row.append(v)
+        if row[3] < 1:
+            raise CosyError(f"inst_count must be >= 1, got {row[3]}", path=path, where=where)
+        rows.append(row)
+    return pd.DataFrame(rows, columns=TARGET_COLUMNS, dtype=np.int64)
+
+
+def write_targets(path: str | Path, targets: pd.DataFrame) -> None:
+    cols = ["im_id", "inst_count", "obj_id", "scene_id"]  # the key order of the BOP files
+    data = [{k: int(r[k]) for k in cols} for r in targets.to_dict("records")]
+    atomic.write_json(path, data, indent=None)
+
+
+# --------------------------------------------------------------------------------------------
+# BOP results CSV (pose estimates)
+# --------------------------------------------------------------------------------------------
+@dataclass
+class PoseResults:
+    """Rows of a BOP results CSV: ids, score, time in ``table`` and poses in ``T_cam_obj``.
+
+    ``table`` has columns scene_id, im_id, obj_id (int64), score, time (float64, seconds);
+    ``T_cam_obj`` is (n, 4, 4) with translations in mm. Row i of both describe one estimate.
+    """
+
+    table: pd.DataFrame
+    T_cam_obj: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    @classmethod
+    def empty(cls) -> "PoseResults":
+        return cls(pd.DataFrame({k: pd.Series(dtype=np.int64) for k in ("scene_id", "im_id", "obj_id")}
+                                | {"score": pd.Series(dtype=np.float64), "time": pd.Series(dtype=np.float64)}),
+                   np.zeros((0, 4, 4)))
+
+    @classmethod
+    def from_arrays(cls, scene_id, im_id, obj_id, score, T_cam_obj, time=None) -> "PoseResults":
+        n = len(np.atleast_1d(scene_id))
+        table = pd.DataFrame({
+            "scene_id": np.asarray(scene_id, dtype=np.int64).reshape(n),
+            "im_id": np.asarray(im_id, dtype=np.int64).reshape(n),
+            "obj_id": np.asarray(obj_id, dtype=np.int64).reshape(n),
+            "score": np.asarray(score, dtype=np.float64).reshape(n),
+            "time": (np.full(n, -1.0) if time is None else np.broadcast_to(np.asarray(time, dtype=np.float64), (n,)).copy()),
+        })
+        return cls(table, np.asarray(T_cam_obj, dtype=np.float64).reshape(n, 4, 4))
+
+
+def read_results(path: str | Path, *, check_rotations: bool = True) -> PoseResults:
+    """Read a BOP results CSV (``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm).
+
+    Raises :class:`CosyError` naming the row (1-based data row, header excluded) on a missing
+    column, a malformed number, a non-finite value or (``check_rotations``) a non-orthonormal R.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CosyError("file not found", path=path)
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise CosyError(f"empty file: expected a header {','.join(RESULTS_COLUMNS)}", path=path) from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise CosyError(f"not a valid CSV ({str(e).strip()})", path=path) from None
+    df.columns = [c.strip() for c in df.columns]
+    missing = [c for c in RESULTS_COLUMNS if c not in df.columns and c != "time"]
+    if missing:
+        raise CosyError(f"missing column(s) {', '.join(missing)}; expected header {','.join(RESULTS_COLUMNS)}", path=path)
+    if "time" not in df.columns:
+        df["time"] = "-1"
+    n = len(df)
+    if n == 0:
+        return PoseResults.empty()
+
+    def ints(col: str) -> np.ndarray:
+        vals = pd.to_numeric(df[col], errors="coerce")
+        bad = vals.isna() | (vals != np.round(vals))
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            raise CosyError(f"column {col}: expected an integer, got {df[col].iloc[i]!r}", path=path, where=f"row {i + 1}")
+        return vals.to_numpy().astype(np.int64)
+
+    def floats(col: str) -> np.ndarray:
+        vals = pd.to_numeric(df[col], errors="coerce")
+        bad = ~np.isfinite(vals.to_numpy(dtype=np.float64))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CosyError(f"column {col}: expected a finite number, got {df[col].iloc[i]!r}", path=path, where=f"row {i + 1}")
+        return vals.to_numpy(dtype=np.float64)
+
+    def vectors(col: str, k: int) -> np.ndarray:
+        text = df[col].str.strip()
+        parts = text.str.split(r"\s+", regex=True)
+        lens = parts.str.len().to_numpy()
+        if (lens != k).any():
+            i = int(np.flatnonzero(lens != k)[0])
+            raise CosyError(f"column {col}: expected {k} space-separated numbers, got {df[col].iloc[i]!r}",
+                            path=path, where=f"row {i + 1}")
+        try:
+            arr = np.array(np.concatenate(parts.to_numpy()), dtype=np.float64).reshape(n, k)
+        except ValueError:
+            for i, p in enumerate(parts):
+                try:
+                    np.array(p, dtype=np.float64)
+                except ValueError:
+                    raise CosyError(f"column {col}: not a number in {df[col].iloc[i]!r}", path=path, where=f"row {i + 1}") from None
+            raise
+        bad = ~np.isfinite(arr).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CosyError(f"column {col}: non-finite value in {df[col].iloc[i]!r}", path=path, where=f"row {i + 1}")
+        return arr
+
+    R = vectors("R", 9).reshape(n, 3, 3)
+    t = vectors("t", 3)
+    if check_rotations:
+        err = rotation_errors(R)
+        bad = err > ROTATION_TOL
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CosyError(f"R is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, det = {np.linalg.det(R[i]):.3g})",
+                            path=path, where=f"row {i + 1}")
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = t
+    T[:, 3, 3] = 1.0
+    return PoseResults.from_arrays(ints("scene_id"), ints("im_id"), ints("obj_id"), floats("score"), T, floats("time"))
+
+
+def format_results(res: PoseResults) -> str:
+    """The CSV text of ``res`` (R row-major, t in mm, 6 decimals for t and 9 significant digits for R)."""
+    tab = res.table
+    buf = _io.StringIO()
+    buf.write(",".join(RESULTS_COLUMNS) + "\n")
+    R = res.T_cam_obj[:, :3, :3].reshape(-1, 9)
+    t = res.T_cam_obj[:, :3, 3]
+    for i in range(len(tab)):
+        r = tab.iloc[i]
+        buf.write(
+            f"{int(r.scene_id)},{int(r.im_id)},{int(r.obj_id)},{float(r.score):.9g},"
+            + " ".join(f"{v:.9g}" for v in R[i]) + ","
+            + " ".join(f"{v:.6f}" for v in t[i]) + f",{float(r.time):.6g}\n"
+        )
+    return buf.getvalue()
+
+
+def write_results(path: str | Path, res: PoseResults) -> None:
+    atomic.write_text(path, format_results(res))
+
+
+# --------------------------------------------------------------------------------------------
+# BOP detections (JSON list)
+# --------------------------------------------------------------------------------------------
+DETECTION_KEYS = ("scene_id", "image_id", "category_id", "score", "bbox")
+
+
+def read_detections(path: str | Path) -> pd.DataFrame:
+    """BOP detection file: a list of {scene_id, image_id, category_id, score, bbox [x, y, w, h] px, ...}.
+
+    Returns a table with columns scene_id, im_id, obj_id, score, x, y, w, h, time (and
+    ``segmentation`` as objects when present).
+    """
+    path = Path(path)
+    data = load_json(path)
+    if not isinstance(data, list):
+        raise CosyError("expected a JSON list of detections {scene_id, image_id, category_id, score, bbox}", path=path)
+    rows = []
+    for i, d in enumerate(data):
+        where = f"detection {i}"
+        for k in DETECTION_KEYS:
+            _require(d, k, path, where)
+        for k in ("scene_id", "image_id", "category_id"):
+            if not isinstance(d[k], int) or isinstance(d[k], bool):
+                raise CosyError(f"{k}: expected an integer, got {d[k]!r}", path=path, where=where)
+        score = float(_numbers(d["score"], 1, path, where, "score")[0])
+        box = _numbers(d["bbox"], 4, path, where, "bbox [x, y, w, h]")
+        if box[2] <= 0 or box[3] <= 0:
+            raise CosyError(f"bbox has non-positive width or height: {box.tolist()}", path=path, where=where)
+        rows.append({"scene_id": d["scene_id"], "im_id": d["image_id"], "obj_id": d["category_id"], "score": score,
+                     "x": box[0], "y": box[1], "w": box[2], "h": box[3], "time": float(d.get("time", -1.0)),
+                     "segmentation": d.get("segmentation")})
+    cols = ["scene_id", "im_id", "obj_id", "score", "x", "y", "w", "h", "time", "segmentation"]
+    df = pd.DataFrame(rows, columns=cols)
+    for c in ("scene_id", "im_id", "obj_id"):
+        df[c] = df[c].astype(np.int64)
+    return df
+
+
+def write_detections(path: str | Path, dets: pd.DataFrame) -> None:
+    out = []
+    for r in dets.to_dict("records"):
+        d = {"scene_id": int(r["scene_id"]), "image_id": int(r["im_id"]), "category_id": int(r["obj_id"]),
+             "score": _fmt(r["score"]), "bbox": [_fmt(r[k]) for k in ("x", "y", "w", "h")],
+             "time": _fmt(r.get("time", -1.0))}
+        seg = r.get("segmentation")
+        if seg is not None and not (isinstance(seg, float) and math.isnan(seg)):
+            d["segmentation"] = seg
+        out.append(d)
+    atomic.write_json(path, out, indent=None)

@@ -1,0 +1,83 @@
+"""Image files: RGB/gray (png, jpg, tif), 16-bit depth (value x depth_scale = mm), masks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import CosyError
+from .atomic import atomic_path
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise CosyError("image not found", path=path)
+    data = np.fromfile(str(path), dtype=np.uint8)
+    img = cv2.imdecode(data, flags) if data.size else None
+    if img is None:
+        raise CosyError("unreadable image (not a valid png/jpg/tif)", path=path)
+    return img
+
+
+def read_rgb(path: str | Path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB. Gray images are replicated to three channels."""
+    img = _imread(Path(path), cv2.IMREAD_COLOR)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth(path: str | Path, depth_scale: float = 1.0) -> np.ndarray:
+    """(H, W) float32 depth in mm (0 = no measurement): stored value x ``depth_scale``."""
+    path = Path(path)
+    img = _imread(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_UNCHANGED)
+    if img.ndim != 2:
+        raise CosyError(f"depth image must have one channel, got shape {img.shape}", path=path)
+    return img.astype(np.float32) * np.float32(depth_scale)
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """(H, W) bool mask (non-zero pixels)."""
+    img = _imread(Path(path), cv2.IMREAD_GRAYSCALE)
+    return img > 0
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) read from the file header when possible (png), else by decoding."""
+    path = Path(path)
+    if path.suffix.lower() == ".png":
+        with open(path, "rb") as f:
+            head = f.read(24)
+        if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n":
+            return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    img = _imread(path, cv2.IMREAD_UNCHANGED)
+    return img.shape[1], img.shape[0]
+
+
+def _imwrite(path: Path, img: np.ndarray, params: list[int] | None = None) -> None:
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(path.suffix, img, params or [])
+        if not ok:
+            raise CosyError("could not encode image", path=path)
+        buf.tofile(str(tmp))
+
+
+def write_rgb(path: str | Path, rgb: np.ndarray, jpg_quality: int = 95) -> None:
+    path = Path(path)
+    img = cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR)
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else [cv2.IMWRITE_PNG_COMPRESSION, 6]
+    _imwrite(path, img, params)
+
+
+def write_depth(path: str | Path, depth_mm: np.ndarray, depth_scale: float = 1.0) -> None:
+    """Write depth in mm as a 16-bit png holding ``round(depth_mm / depth_scale)``."""
+    d = np.round(np.asarray(depth_mm, dtype=np.float64) / depth_scale)
+    if d.max(initial=0) > 65535:
+        raise CosyError(f"depth {d.max() * depth_scale:.0f} mm does not fit 16 bits at depth_scale {depth_scale}", path=path)
+    _imwrite(Path(path), np.clip(d, 0, 65535).astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 6])
+
+
+def write_mask(path: str | Path, mask: np.ndarray) -> None:
+    _imwrite(Path(path), (np.asarray(mask) > 0).astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, 9])
