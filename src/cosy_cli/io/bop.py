@@ -311,8 +311,7 @@ def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
         S = np.stack([_numbers(s, 16, path, where, f"symmetries_discrete[{j}]").reshape(4, 4) for j, s in enumerate(disc)]) \
             if disc else np.zeros((0, 4, 4))
         if len(S):
-            bad = ~np.allclose(S[:, 3], [0, 0, 0, 1], atol=1e-6)
-            if bad:
+            if not np.allclose(S[:, 3], [0, 0, 0, 1], atol=1e-6):
                 raise CosyError("symmetries_discrete: last row of each 4x4 must be 0 0 0 1", path=path, where=where)
         cont = e.get("symmetries_continuous", [])
         if not isinstance(cont, list):
