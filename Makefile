@@ -48,7 +48,7 @@ bench: $(VENV)/.installed
 
 # Regenerates the shipped sample dataset (deterministic).
 sample-data: $(VENV)/.installed
-	$(COSY) synth --out data_samples --scenes 3 --views 8 --objects 6 --seed 0 --overwrite
+	$(COSY) synth --out data_samples --scenes 3 --views 8 --objects 8 --seed 0 --overwrite
 
 clean-venv:
 	rm -rf $(VENV)

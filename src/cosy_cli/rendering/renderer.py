@@ -1,0 +1,573 @@
+"""SceneRenderer: RGB, exact depth and instance maps of posed meshes, headless (pyrender + OpenGL).
+
+Conventions (the house ones): poses ``T_cam_obj`` are 4x4 maps from object to OpenCV camera
+coordinates (x right, y down, z forward), lengths in mm, intrinsics ``K`` in pixels with the centre
+of the top-left pixel at (0, 0). Renders follow :func:`cosy_cli.geometry.project` exactly: a point
+that projects to (u, v) is drawn in pixel column round(u), row round(v).
+
+How it works. pyrender provides the headless context (EGL/OSMesa, see :mod:`.platform`), the
+trimesh -> GPU conversion (``pyrender.Mesh.from_trimesh``: flat or smooth normals, vertex/face
+colours, UVs) and texture upload. The forward pass is our own, one shader and one draw call per
+instance, into our own *single-sample* framebuffer with three colour attachments:
+
+- RGBA8 colour: albedo (flat colour, vertex colours or texture) x (ambient + intensity x
+  max(0, n . -light_dir)), Lambert shading with normals turned towards the camera, no gamma;
+- R32F depth: the camera-frame z (mm) of the visible surface, interpolated per pixel centre (not
+  read back from the non-linear z-buffer, so it is exact to float precision, and never blended
+  across edges since nothing is multisampled); 0 where no object;
+- R32I instance: index of the visible instance, -1 where no object.
+
+The projection matrix (:func:`projection_matrix`) takes OpenCV camera coordinates straight to clip
+space with the image's row order equal to OpenGL's window row order, so reading the framebuffer
+gives the image top row first: no flips and no ``T_GL_CV`` (pyrender's own cameras are OpenGL ones;
+:data:`cosy_cli.geometry.T_GL_CV` converts if you use them directly).
+
+Closed meshes (watertight, wound outwards) are drawn with back faces culled, which halves the
+work of llvmpipe's triangle setup, its bottleneck; open ones are drawn two-sided, lit on the side
+facing the camera.
+
+Several images (crops, silhouettes) are rendered as tiles of one framebuffer (an atlas: one
+viewport per tile, clipped and scissored to it) and read back with one ``glReadPixels`` per
+attachment. One OpenGL context per renderer, reused for every size; GPU meshes are cached per
+object id.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .platform import create_context, select_gl_platform
+from .pyrender_patch import patch_pyrender
+
+_PLATFORM = select_gl_platform()  # must precede the first import of OpenGL
+
+from OpenGL import GL as gl  # noqa: E402
+from OpenGL.GL import shaders as gl_shaders  # noqa: E402  (before any OpenGL.EGL import: PyOpenGL 3.1.0 bug)
+
+DEFAULT_COLOR = (0.7, 0.7, 0.7)  # RGB 0..1 of meshes without colours or texture
+MAX_ATLAS_SIDE = 2048  # pixels: side of the framebuffer that tiles are packed into (grown for bigger images)
+
+_VERTEX_SHADER = """
+#version 330 core
+layout(location = 0) in vec3 position;
+layout(location = 1) in vec3 normal;
+layout(location = 2) in vec2 texcoord;
+layout(location = 3) in vec4 color;
+uniform mat4 MV;  // object (mm) -> OpenCV camera (mm)
+uniform mat4 P;   // OpenCV camera -> clip
+out vec3 v_pos;
+out vec3 v_normal;
+out vec2 v_uv;
+out vec4 v_color;
+void main() {
+    vec4 p = MV * vec4(position, 1.0);
+    v_pos = p.xyz;
+    v_normal = mat3(MV) * normal;  // rigid poses: the rotation is its own inverse transpose
+    v_uv = texcoord;
+    v_color = color;
+    gl_Position = P * p;
+}
+"""
+
+_FRAGMENT_SHADER = """
+#version 330 core
+in vec3 v_pos;
+in vec3 v_normal;
+in vec2 v_uv;
+in vec4 v_color;
+uniform vec4 base_color;
+uniform ivec3 flags;         // (use vertex colours, use texture, instance index)
+uniform sampler2D base_texture;
+uniform vec3 light_dir;      // unit direction the light travels, camera frame
+uniform vec2 light;          // (directional intensity, ambient)
+layout(location = 0) out vec4 out_color;
+layout(location = 1) out float out_depth;
+layout(location = 2) out int out_instance;
+void main() {
+    vec4 albedo = base_color;
+    if (flags.x != 0) albedo *= v_color;
+    if (flags.y != 0) albedo *= texture(base_texture, v_uv);
+    float len = length(v_normal);
+    vec3 n = len > 1e-12 ? v_normal / len : -normalize(v_pos);
+    if (dot(n, v_pos) > 0.0) n = -n;  // two-sided: the normal faces the camera
+    float shade = light.y + light.x * max(dot(n, -light_dir), 0.0);
+    out_color = vec4(clamp(albedo.rgb * shade, 0.0, 1.0), 1.0);
+    out_depth = v_pos.z;
+    out_instance = flags.z;
+}
+"""
+
+
+@dataclass
+class RenderOutput:
+    """What a render returns (single image: (H, W, ...); batches: (B, H, W, ...)).
+
+    rgb: uint8 RGB, or None when rendered ``with_rgb=False``.
+    depth: float32 camera-frame z in mm of the visible surface, 0 where no object.
+    instance: int32 index into the call's ``obj_ids`` of the visible instance, -1 where none.
+    """
+
+    rgb: np.ndarray | None
+    depth: np.ndarray
+    instance: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """bool: any object visible."""
+        return self.instance >= 0
+
+
+def projection_matrix(K: np.ndarray, width: int, height: int, znear: float, zfar: float) -> np.ndarray:
+    """OpenGL clip matrices (..., 4, 4) for OpenCV camera coordinates and intrinsics K (..., 3, 3).
+
+    Pixel (u, v) = K-projection of a point (centres at integers) lands on window pixel
+    (u + 0.5, v + 0.5) of a ``width`` x ``height`` viewport, with window row 0 = image row 0.
+    Camera z in [znear, zfar] (same unit as the points) maps to NDC depth [-1, 1].
+    """
+    K = np.asarray(K, dtype=np.float64)
+    P = np.zeros(K.shape[:-2] + (4, 4))
+    P[..., 0, 0] = 2 * K[..., 0, 0] / width
+    P[..., 0, 1] = 2 * K[..., 0, 1] / width
+    P[..., 0, 2] = (2 * K[..., 0, 2] + 1) / width - 1
+    P[..., 1, 1] = 2 * K[..., 1, 1] / height
+    P[..., 1, 2] = (2 * K[..., 1, 2] + 1) / height - 1
+    P[..., 2, 2] = (zfar + znear) / (zfar - znear)
+    P[..., 2, 3] = -2 * zfar * znear / (zfar - znear)
+    P[..., 3, 2] = 1.0
+    return P
+
+
+class _GpuMesh:
+    """One object's vertex array (positions, normals, [uv], [colours]) and texture on the GPU."""
+
+    def __init__(self, mesh, smooth: bool, default_color, cull: bool | None = None):
+        import pyrender
+        import trimesh
+
+        if not isinstance(mesh, trimesh.Trimesh):
+            mesh = getattr(mesh, "mesh", mesh)  # an ObjectModel
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise TypeError(f"expected a trimesh.Trimesh (vertices in mm), got {type(mesh).__name__}")
+        if len(mesh.faces) == 0:
+            raise ValueError("mesh has no faces")
+        if smooth and mesh.visual.kind == "face":
+            smooth = False  # face colours need unmerged vertices
+        if cull is None:
+            # Back faces of a closed, consistently outward-wound surface are never visible: cull them
+            # (halves llvmpipe's triangle setup, its bottleneck). Open or inconsistent meshes: two-sided.
+            # Checked with vertices merged by position (files split vertices along UV/colour seams).
+            closed = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+            cull = bool(closed.is_watertight and closed.is_winding_consistent and closed.volume > 0)
+        self.cull = bool(cull)
+        self.pyrender_mesh = pyrender.Mesh.from_trimesh(mesh, smooth=smooth)
+        prim = self.pyrender_mesh.primitives[0]
+        material = prim.material
+        texture = getattr(material, "baseColorTexture", None)
+        if prim.texcoord_0 is None:
+            texture = None
+        self.texture = texture
+        self.has_colors = prim.color_0 is not None
+        if not mesh.visual.defined:
+            self.base_color = (*map(float, default_color), 1.0)
+        elif texture is not None or self.has_colors:
+            # trimesh gives textured meshes a default diffuse of 0.4: take the texture as it is
+            self.base_color = (1.0, 1.0, 1.0, 1.0)
+        else:
+            self.base_color = tuple(float(c) for c in np.asarray(material.baseColorFactor)[:4])
+
+        attrs = [(0, prim.positions), (1, prim.normals), (2, prim.texcoord_0 if texture is not None else None),
+                 (3, prim.color_0)]
+        attrs = [(loc, np.asarray(a, dtype=np.float32).reshape(len(prim.positions), -1))
+                 for loc, a in attrs if a is not None]
+        data = np.ascontiguousarray(np.hstack([a for _, a in attrs]), dtype=np.float32)
+        self.vao = gl.glGenVertexArrays(1)
+        gl.glBindVertexArray(self.vao)
+        self.buffers = [gl.glGenBuffers(1)]
+        gl.glBindBuffer(gl.GL_ARRAY_BUFFER, self.buffers[0])
+        gl.glBufferData(gl.GL_ARRAY_BUFFER, data.nbytes, data, gl.GL_STATIC_DRAW)
+        offset = 0
+        for loc, a in attrs:
+            gl.glVertexAttribPointer(loc, a.shape[1], gl.GL_FLOAT, gl.GL_FALSE, data.shape[1] * 4,
+                                     ctypes.c_void_p(offset))
+            gl.glEnableVertexAttribArray(loc)
+            offset += a.shape[1] * 4
+        self.indexed = prim.indices is not None
+        if self.indexed:
+            idx = np.ascontiguousarray(prim.indices, dtype=np.uint32).ravel()
+            self.buffers.append(gl.glGenBuffers(1))
+            gl.glBindBuffer(gl.GL_ELEMENT_ARRAY_BUFFER, self.buffers[1])
+            gl.glBufferData(gl.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, gl.GL_STATIC_DRAW)
+            self.count = idx.size
+        else:
+            self.count = len(prim.positions)
+        gl.glBindVertexArray(0)
+        if texture is not None:
+            texture._add_to_context()
+
+    def draw(self):
+        if self.indexed:
+            gl.glDrawElements(gl.GL_TRIANGLES, self.count, gl.GL_UNSIGNED_INT, None)
+        else:
+            gl.glDrawArrays(gl.GL_TRIANGLES, 0, self.count)
+
+    def delete(self):
+        gl.glDeleteVertexArrays(1, [self.vao])
+        gl.glDeleteBuffers(len(self.buffers), self.buffers)
+        if self.texture is not None:
+            self.texture.delete()
+
+
+class _Framebuffer:
+    """Single-sample framebuffer: RGBA8 colour, R32F depth (mm), R32I instance, 32F z-buffer.
+    Grows (never shrinks) to the largest region asked for."""
+
+    FORMATS = (gl.GL_RGBA8, gl.GL_R32F, gl.GL_R32I)
+
+    def __init__(self):
+        self.fbo = None
+        self.renderbuffers = []
+        self.size = (0, 0)
+
+    def ensure(self, width: int, height: int):
+        if width <= self.size[0] and height <= self.size[1]:
+            return
+        width = -(-max(width, self.size[0]) // 16) * 16
+        height = -(-max(height, self.size[1]) // 16) * 16
+        limit = int(gl.glGetIntegerv(gl.GL_MAX_RENDERBUFFER_SIZE))
+        if width > limit or height > limit:
+            raise ValueError(f"{width} x {height} pixels exceeds this OpenGL's framebuffer limit ({limit})")
+        self.delete()
+        self.fbo = gl.glGenFramebuffers(1)
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, self.fbo)
+        self.renderbuffers = list(np.atleast_1d(gl.glGenRenderbuffers(4)))
+        for i, (rb, fmt) in enumerate(zip(self.renderbuffers, self.FORMATS + (gl.GL_DEPTH_COMPONENT32F,))):
+            gl.glBindRenderbuffer(gl.GL_RENDERBUFFER, rb)
+            gl.glRenderbufferStorage(gl.GL_RENDERBUFFER, fmt, width, height)
+            attachment = gl.GL_DEPTH_ATTACHMENT if i == 3 else gl.GL_COLOR_ATTACHMENT0 + i
+            gl.glFramebufferRenderbuffer(gl.GL_FRAMEBUFFER, attachment, gl.GL_RENDERBUFFER, rb)
+        status = gl.glCheckFramebufferStatus(gl.GL_FRAMEBUFFER)
+        if status != gl.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError(f"incomplete OpenGL framebuffer (status {status:#x})")
+        self.size = (width, height)
+
+    def delete(self):
+        if self.fbo is not None:
+            gl.glDeleteFramebuffers(1, [self.fbo])
+            gl.glDeleteRenderbuffers(len(self.renderbuffers), self.renderbuffers)
+        self.fbo, self.renderbuffers, self.size = None, [], (0, 0)
+
+
+class SceneRenderer:
+    """Renders posed instances of a fixed set of meshes (mm) with one headless OpenGL context.
+
+    ``meshes``: obj_id -> trimesh.Trimesh (vertices in mm; vertex/face colours or a texture are
+    used when present, else ``default_color``). ``width`` x ``height``: the default image size
+    (any size can be asked per call). ``znear``/``zfar``: clipping planes in mm. ``smooth``:
+    interpolated vertex normals (scanned meshes) instead of flat faces (CAD-like parts).
+    ``cull_back_faces``: None (default) culls back faces of closed, outward-wound meshes (twice as
+    fast on llvmpipe) and draws open ones two-sided; True/False forces it for every mesh.
+
+    Not thread-safe; one renderer per thread or process. Worker processes that render with EGL
+    must be started with the ``spawn`` method (a forked EGL context is unusable).
+    """
+
+    def __init__(self, meshes: Mapping[int, object], width: int, height: int, *, znear: float = 10.0,
+                 zfar: float = 10_000.0, smooth: bool = False, default_color=DEFAULT_COLOR,
+                 cull_back_faces: bool | None = None):
+        if not (0 < znear < zfar):
+            raise ValueError(f"need 0 < znear < zfar (mm), got {znear}, {zfar}")
+        self.width, self.height = int(width), int(height)
+        self.znear, self.zfar = float(znear), float(zfar)
+        self.smooth = smooth
+        self.default_color = default_color
+        self.cull_back_faces = cull_back_faces
+        self.platform = _PLATFORM
+        self._closed = True
+        patch_pyrender()  # other pyrender users in this process must not terminate our EGL display
+        self._ctx, self._release = create_context(_PLATFORM)
+        self._closed = False
+        self.gl_renderer = " / ".join(gl.glGetString(e).decode() for e in (gl.GL_RENDERER, gl.GL_VERSION))
+        self._program = self._compile()
+        self._uniform = {name: gl.glGetUniformLocation(self._program, name)
+                         for name in ("MV", "P", "base_color", "flags", "base_texture", "light_dir", "light")}
+        self._fb = _Framebuffer()
+        self._fb.ensure(self.width, self.height)
+        self._meshes: dict[int, _GpuMesh] = {}
+        for obj_id, mesh in meshes.items():
+            self.add_mesh(obj_id, mesh)
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return sorted(self._meshes)
+
+    def add_mesh(self, obj_id: int, mesh) -> None:
+        """Upload (or replace) the mesh of ``obj_id`` (trimesh.Trimesh in mm, or an ObjectModel)."""
+        self._make_current()
+        old = self._meshes.pop(int(obj_id), None)
+        if old is not None:
+            old.delete()
+        self._meshes[int(obj_id)] = _GpuMesh(mesh, self.smooth, self.default_color, self.cull_back_faces)
+
+    def render(self, K, obj_ids: Sequence[int], T_cam_obj, *, colors=None, background=None, light_dir=None,
+               light_intensity=None, ambient: float = 0.3, with_rgb: bool = True,
+               size: tuple[int, int] | None = None) -> RenderOutput:
+        """Render the instances ``obj_ids[i]`` at poses ``T_cam_obj[i]`` (n, 4, 4; mm) seen by K (3, 3).
+
+        colors: None (each mesh's own colours) or (n, 3) RGB in 0..1 per instance (a flat albedo,
+        still lit; a row of NaNs keeps that instance's own colours). background: None (black) or an
+        (H, W, 3) uint8 image shown where no object is. light_dir: (3,) direction the light travels,
+        in the camera frame (default (0, 0, 1): from the camera). light_intensity: directional
+        light strength (default 1 - ambient); ambient: ambient light strength.
+        size: (width, height) of this image, default the renderer's. Returns (H, W) maps.
+        """
+        w, h = self._size(size)
+        K = self._check_K(K, None)
+        ids, T = self._check_instances(obj_ids, T_cam_obj)
+        n = len(ids)
+        out = self._render_tiles(1, K[None], w, h, ids, T, np.zeros(n, dtype=np.int64), np.arange(n),
+                                 self._check_colors(colors, n), self._lighting(light_dir, light_intensity, ambient),
+                                 with_rgb=with_rgb)
+        out = RenderOutput(None if out.rgb is None else out.rgb[0], out.depth[0], out.instance[0])
+        if background is not None:
+            bg = np.asarray(background)
+            if bg.shape != (h, w, 3):
+                raise ValueError(f"background must be ({h}, {w}, 3) uint8, got shape {bg.shape}")
+            if out.rgb is not None:
+                empty = out.instance < 0
+                out.rgb[empty] = bg[empty]
+        return out
+
+    def render_silhouettes(self, K, obj_ids: Sequence[int], T_cam_obj, *,
+                           size: tuple[int, int] | None = None) -> np.ndarray:
+        """(n, H, W) bool: the pixels of each instance rendered alone (ignoring occlusion)."""
+        w, h = self._size(size)
+        K = self._check_K(K, None)
+        ids, T = self._check_instances(obj_ids, T_cam_obj)
+        n = len(ids)
+        out = self._render_tiles(n, K[None], w, h, ids, T, np.arange(n), np.arange(n), None,
+                                 self._lighting(None, None, 0.3), with_rgb=False, with_depth=False,
+                                 K_per_tile=False)
+        return out.instance >= 0
+
+    def render_crops(self, K_crops, obj_ids: Sequence[int], T_cam_obj, size: tuple[int, int], *, colors=None,
+                     light_dir=None, light_intensity=None, ambient: float = 0.3,
+                     with_rgb: bool = True) -> RenderOutput:
+        """B images of ``size`` = (w, h), image b showing only instance b: K_crops (B, 3, 3)
+        (e.g. from :func:`cosy_cli.geometry.crop_intrinsics`), obj_ids (B,), T_cam_obj (B, 4, 4) mm.
+        Returns rgb (B, h, w, 3), depth (B, h, w), instance (B, h, w) (= b on the object, -1 elsewhere).
+        Lighting and colours as in :meth:`render` (colors: (B, 3))."""
+        w, h = self._size(size)
+        ids, T = self._check_instances(obj_ids, T_cam_obj)
+        n = len(ids)
+        K = self._check_K(K_crops, n)
+        return self._render_tiles(n, K, w, h, ids, T, np.arange(n), np.arange(n), self._check_colors(colors, n),
+                                  self._lighting(light_dir, light_intensity, ambient), with_rgb=with_rgb)
+
+    def close(self) -> None:
+        """Free the GPU meshes, framebuffer and OpenGL context. Idempotent."""
+        if self._closed:
+            return
+        try:
+            self._make_current()
+            for m in self._meshes.values():
+                m.delete()
+            self._fb.delete()
+            gl.glDeleteProgram(self._program)
+        finally:
+            self._meshes = {}
+            self._closed = True
+            self._release()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # ------------------------------------------------------------------ internals
+
+    def _make_current(self):
+        if self._closed:
+            raise RuntimeError("this SceneRenderer is closed")
+        self._ctx.make_current()  # ~10 us; other renderers (ours or pyrender's) may have switched
+
+    def _compile(self):
+        vao = gl.glGenVertexArrays(1)  # core profiles validate programs against a bound VAO
+        gl.glBindVertexArray(vao)
+        program = gl_shaders.compileProgram(gl_shaders.compileShader(_VERTEX_SHADER, gl.GL_VERTEX_SHADER),
+                                            gl_shaders.compileShader(_FRAGMENT_SHADER, gl.GL_FRAGMENT_SHADER))
+        gl.glBindVertexArray(0)
+        gl.glDeleteVertexArrays(1, [vao])
+        return program
+
+    def _size(self, size):
+        w, h = (self.width, self.height) if size is None else (int(size[0]), int(size[1]))
+        if w <= 0 or h <= 0:
+            raise ValueError(f"image size must be positive, got {w} x {h}")
+        return w, h
+
+    @staticmethod
+    def _check_K(K, n):
+        K = np.asarray(K, dtype=np.float64)
+        want = (3, 3) if n is None else (n, 3, 3)
+        if K.shape != want:
+            raise ValueError(f"K must have shape {want}, got {K.shape}")
+        return K
+
+    def _check_instances(self, obj_ids, T_cam_obj):
+        ids = [int(i) for i in np.asarray(obj_ids).reshape(-1)]
+        T = np.asarray(T_cam_obj, dtype=np.float64)
+        if T.shape != (len(ids), 4, 4):
+            raise ValueError(f"T_cam_obj must be ({len(ids)}, 4, 4) for {len(ids)} obj_ids, got {T.shape}")
+        unknown = sorted(set(ids) - set(self._meshes))
+        if unknown:
+            raise KeyError(f"no mesh for obj_id(s) {unknown} in this renderer (it has {self.obj_ids})")
+        return ids, T
+
+    @staticmethod
+    def _check_colors(colors, n):
+        if colors is None:
+            return None
+        c = np.asarray(colors)
+        if c.shape != (n, 3):
+            raise ValueError(f"colors must be ({n}, 3) RGB in 0..1, got shape {c.shape}")
+        c = c.astype(np.float64) / 255.0 if np.issubdtype(c.dtype, np.integer) else c.astype(np.float64)
+        return c
+
+    @staticmethod
+    def _lighting(light_dir, light_intensity, ambient):
+        d = np.array([0.0, 0.0, 1.0]) if light_dir is None else np.asarray(light_dir, dtype=np.float64).reshape(3)
+        norm = np.linalg.norm(d)
+        if not norm > 0:
+            raise ValueError("light_dir must be a non-zero 3-vector")
+        intensity = max(0.0, 1.0 - ambient) if light_intensity is None else float(light_intensity)
+        return d / norm, intensity, float(ambient)
+
+    def _render_tiles(self, n_tiles, Ks, w, h, ids, T, tile_of, instance_value, colors, lighting, *,
+                      with_rgb=True, with_depth=True, K_per_tile=True) -> RenderOutput:
+        """Draw instance i into tile ``tile_of[i]`` (non-decreasing) with instance value
+        ``instance_value[i]``; tile t uses Ks[t] (or Ks[0] for all if not K_per_tile).
+        Returns (n_tiles, h, w) maps (depth None if not with_depth)."""
+        self._make_current()
+        side = max(MAX_ATLAS_SIDE, w, h)
+        cols_max, rows_max = max(1, side // w), max(1, side // h)
+        per_chunk = cols_max * rows_max
+        Ps = projection_matrix(Ks, w, h, self.znear, self.zfar).astype(np.float32)
+        # column-major float32 model-view matrices for glUniformMatrix4fv
+        MV = np.ascontiguousarray(np.swapaxes(T, -1, -2), dtype=np.float32)
+        rgb = np.empty((n_tiles, h, w, 3), np.uint8) if with_rgb else None
+        depth = np.empty((n_tiles, h, w), np.float32) if with_depth else None
+        inst = np.empty((n_tiles, h, w), np.int32)
+        bounds = np.searchsorted(tile_of, np.arange(0, n_tiles + per_chunk, per_chunk))
+
+        u = self._uniform
+        gl.glUseProgram(self._program)
+        light_dir, intensity, ambient = lighting
+        gl.glUniform3f(u["light_dir"], *map(float, light_dir))
+        gl.glUniform2f(u["light"], intensity, ambient)
+        gl.glUniform1i(u["base_texture"], 0)
+        gl.glActiveTexture(gl.GL_TEXTURE0)
+        gl.glEnable(gl.GL_DEPTH_TEST)
+        gl.glDepthFunc(gl.GL_LESS)
+        gl.glDepthMask(gl.GL_TRUE)
+        gl.glCullFace(gl.GL_BACK)
+        gl.glFrontFace(_FRONT_FACE)
+        gl.glDisable(gl.GL_BLEND)
+        gl.glEnable(gl.GL_SCISSOR_TEST)
+        if not K_per_tile:
+            gl.glUniformMatrix4fv(u["P"], 1, gl.GL_TRUE, Ps[0])
+
+        for c, t0 in enumerate(range(0, n_tiles, per_chunk)):
+            m = min(per_chunk, n_tiles - t0)
+            cols = min(m, cols_max)
+            rows = -(-m // cols)
+            W, H = cols * w, rows * h
+            self._fb.ensure(W, H)
+            gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, self._fb.fbo)
+            # outputs not asked for are neither written nor cleared
+            gl.glDrawBuffers(3, [gl.GL_COLOR_ATTACHMENT0 if with_rgb else gl.GL_NONE,
+                                 gl.GL_COLOR_ATTACHMENT1 if with_depth else gl.GL_NONE, gl.GL_COLOR_ATTACHMENT2])
+            gl.glScissor(0, 0, W, H)
+            if with_rgb:
+                gl.glClearBufferfv(gl.GL_COLOR, 0, _ZEROS4)
+            if with_depth:
+                gl.glClearBufferfv(gl.GL_COLOR, 1, _ZEROS4)
+            gl.glClearBufferiv(gl.GL_COLOR, 2, _MINUS_ONE4)
+            gl.glClearBufferfv(gl.GL_DEPTH, 0, _ONES4)
+            tile = -1
+            culling = False
+            gl.glDisable(gl.GL_CULL_FACE)
+            for i in range(bounds[c], bounds[c + 1]):
+                if tile_of[i] != tile:
+                    tile = int(tile_of[i])
+                    k = tile - t0
+                    x0, y0 = (k % cols) * w, (k // cols) * h
+                    gl.glViewport(x0, y0, w, h)
+                    gl.glScissor(x0, y0, w, h)
+                    if K_per_tile:
+                        gl.glUniformMatrix4fv(u["P"], 1, gl.GL_TRUE, Ps[tile])
+                mesh = self._meshes[ids[i]]
+                if mesh.cull != culling:
+                    culling = mesh.cull
+                    (gl.glEnable if culling else gl.glDisable)(gl.GL_CULL_FACE)
+                gl.glBindVertexArray(mesh.vao)
+                gl.glUniformMatrix4fv(u["MV"], 1, gl.GL_FALSE, MV[i])
+                if colors is not None and not np.isnan(colors[i]).any():
+                    gl.glUniform4f(u["base_color"], *map(float, colors[i]), 1.0)
+                    gl.glUniform3i(u["flags"], 0, 0, int(instance_value[i]))
+                else:
+                    gl.glUniform4f(u["base_color"], *mesh.base_color)
+                    use_tex = mesh.texture is not None
+                    gl.glUniform3i(u["flags"], int(mesh.has_colors), int(use_tex), int(instance_value[i]))
+                    if use_tex:
+                        mesh.texture._bind()
+                mesh.draw()
+            gl.glBindVertexArray(0)
+
+            sl = slice(t0, t0 + m)
+            gl.glPixelStorei(gl.GL_PACK_ALIGNMENT, 1)
+            if with_rgb:
+                rgb[sl] = _untile(self._read(0, W, H, gl.GL_RGB, gl.GL_UNSIGNED_BYTE, np.uint8, 3), m, rows, cols, h, w)
+            if with_depth:
+                depth[sl] = _untile(self._read(1, W, H, gl.GL_RED, gl.GL_FLOAT, np.float32, 1), m, rows, cols, h, w)
+            inst[sl] = _untile(self._read(2, W, H, gl.GL_RED_INTEGER, gl.GL_INT, np.int32, 1), m, rows, cols, h, w)
+        gl.glDisable(gl.GL_SCISSOR_TEST)
+        gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, 0)
+        return RenderOutput(rgb, depth, inst)
+
+    @staticmethod
+    def _read(attachment, W, H, fmt, typ, dtype, channels):
+        buf = np.empty((H, W, channels) if channels > 1 else (H, W), dtype)
+        gl.glReadBuffer(gl.GL_COLOR_ATTACHMENT0 + attachment)
+        gl.glReadPixels(0, 0, W, H, fmt, typ, buf)
+        return buf
+
+
+# Our projection keeps image rows in window order (y down), which mirrors the window: triangles
+# wound counter-clockwise seen from outside (trimesh's convention) appear clockwise.
+_FRONT_FACE = gl.GL_CW
+_ZEROS4 = np.zeros(4, np.float32)
+_ONES4 = np.ones(4, np.float32)
+_MINUS_ONE4 = np.full(4, -1, np.int32)
+
+
+def _untile(atlas: np.ndarray, m: int, rows: int, cols: int, h: int, w: int) -> np.ndarray:
+    """(rows*h, cols*w, ...) atlas, tile k at block (k // cols, k % cols) -> (m, h, w, ...)."""
+    if rows == 1 and cols == 1:
+        return atlas[None]
+    rest = atlas.shape[2:]
+    tiles = atlas.reshape((rows, h, cols, w) + rest).swapaxes(1, 2).reshape((rows * cols, h, w) + rest)
+    return tiles[:m]
+
