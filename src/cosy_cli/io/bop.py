@@ -502,14 +502,14 @@ def format_results(res: PoseResults) -> str:
     tab = res.table
     buf = _io.StringIO()
     buf.write(",".join(RESULTS_COLUMNS) + "\n")
-    R = res.T_cam_obj[:, :3, :3].reshape(-1, 9)
-    t = res.T_cam_obj[:, :3, 3]
-    for i in range(len(tab)):
-        r = tab.iloc[i]
+    R = res.T_cam_obj[:, :3, :3].reshape(-1, 9).tolist()
+    t = res.T_cam_obj[:, :3, 3].tolist()
+    cols = [tab[c].to_numpy().tolist() for c in ("scene_id", "im_id", "obj_id", "score", "time")]
+    for (scene_id, im_id, obj_id, score, time), Ri, ti in zip(zip(*cols), R, t):  # plain floats: fast
         buf.write(
-            f"{int(r.scene_id)},{int(r.im_id)},{int(r.obj_id)},{float(r.score):.9g},"
-            + " ".join(f"{v:.9g}" for v in R[i]) + ","
-            + " ".join(f"{v:.6f}" for v in t[i]) + f",{float(r.time):.6g}\n"
+            f"{int(scene_id)},{int(im_id)},{int(obj_id)},{float(score):.9g},"
+            + " ".join(f"{v:.9g}" for v in Ri) + ","
+            + " ".join(f"{v:.6f}" for v in ti) + f",{float(time):.6g}\n"
         )
     return buf.getvalue()
 

@@ -58,6 +58,12 @@ def symmetry_set(symmetries_discrete: np.ndarray, symmetries_continuous: list[di
 def _unique_transforms(T: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     keep = []
     flat = T.reshape(len(T), -1)
+    if len(T) <= 1024:  # same greedy rule, with the pairwise closeness computed at once
+        close = np.abs(flat[:, None] - flat[None]).max(axis=-1) < tol
+        for i in range(len(T)):
+            if not close[i, keep].any():
+                keep.append(i)
+        return T[keep]
     for i in range(len(T)):
         if not any(np.abs(flat[i] - flat[j]).max() < tol for j in keep):
             keep.append(i)
