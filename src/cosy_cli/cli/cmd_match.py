@@ -1,0 +1,95 @@
+"""``cosy match`` (multi-view candidate matching) and ``cosy synth-candidates`` (candidates from GT).
+
+Imports stay light (no torch, no trimesh): the stage modules are imported when a command runs.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import click
+
+from .common import user_errors
+
+
+@click.command("match")
+@click.option("--dataset", required=True, type=click.Path(path_type=Path),
+              help="BOP dataset folder (scene_camera.json per scene, models/ with models_info.json).")
+@click.option("--split", default="test", show_default=True, help="Split folder (test, val...).")
+@click.option("--candidates", "candidates", required=True, type=click.Path(path_type=Path),
+              help="Candidates CSV (BOP results: scene_id,im_id,obj_id,score,R,t,time; pose in the camera, mm).")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Output folder: matches.csv, view_pairs.csv, groups.json, candidates.csv.")
+@click.option("--conf", default="paper", show_default=True,
+              help="Named configuration (paper: the paper's values; paper-norefit: no least-squares refit).")
+@click.option("--views-per-group", type=click.IntRange(min=2), default=None,
+              help="Split each scene's images (sorted by im_id) into consecutive groups of N (default: one group).")
+@click.option("--known-cameras", is_flag=True,
+              help="Take camera poses from cam_R_w2c/cam_t_w2c and only associate candidates (no RANSAC).")
+@click.option("--threshold-mm", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Inlier threshold on the symmetric distance D_l, mm [paper: 20].")
+@click.option("--ransac-iterations", type=click.IntRange(min=1), default=None,
+              help="Max hypotheses (pairs of candidate pairs) per view pair [paper: 2000].")
+@click.option("--ransac-confidence", type=click.FloatRange(min=0, max=1, min_open=True), default=None,
+              help="Stop drawing hypotheses once two inlier pairs were drawn with this probability "
+                   "(1: always --ransac-iterations) [0.99].")
+@click.option("--min-inliers", type=click.IntRange(min=1), default=None,
+              help="Inliers for a view pair to be linked [paper: 3].")
+@click.option("--score-threshold", type=float, default=None, help="Ignore candidates scoring below [0.0].")
+@click.option("--symmetry-steps", type=click.IntRange(min=1), default=None,
+              help="Steps per continuous symmetry axis [paper: 64].")
+@click.option("--refit/--no-refit", default=None,
+              help="Least-squares refit of each view pair's pose on its inliers [on].")
+@click.option("--seed", type=int, default=None, help="Seed of the RANSAC sampling [0].")
+@click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
+@user_errors
+def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, views_per_group, known_cameras: bool,
+          threshold_mm, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
+          overwrite: bool) -> None:
+    """Match object candidates across views (CosyPose stage 2): RANSAC per view pair, scene graph.
+
+    Writes OUT atomically; skips when OUT is complete (unless --overwrite). Lengths in mm.
+    """
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from ..multiview import match_stage
+
+    c = match_stage.resolve_conf(conf, views_per_group=views_per_group, known_cameras=known_cameras or None,
+                                 threshold_mm=threshold_mm, ransac_iterations=ransac_iterations,
+                                 ransac_confidence=ransac_confidence,
+                                 min_inliers=min_inliers, score_threshold=score_threshold,
+                                 symmetry_steps=symmetry_steps, refit=refit, seed=seed)
+    match_stage.main(c, dataset, split, candidates, out, overwrite=overwrite, log=click.echo)
+
+
+@click.command("synth-candidates")
+@click.option("--dataset", required=True, type=click.Path(path_type=Path), help="BOP dataset with ground truth.")
+@click.option("--split", default="test", show_default=True)
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Candidates CSV to write (BOP results).")
+@click.option("--profile", type=click.Choice(["realistic", "clean"]), default="realistic", show_default=True,
+              help="clean: exact GT poses, no misses, flips or false positives.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--gt-out", type=click.Path(path_type=Path), default=None,
+              help="Sidecar CSV: GT instance of each candidate (-1 for false positives).")
+@click.option("--lookalikes", default=None,
+              help="Look-alike pairs like 6:7,3:4 ('none': no confusions; default: found from model sizes).")
+@click.option("--p-miss", type=float, default=None, help="Probability of a missed detection [realistic: 0.1].")
+@click.option("--depth-rel", type=float, default=None, help="Std of the relative depth error [0.01].")
+@click.option("--lateral-mm", type=float, default=None, help="Std of the error across the viewing ray, mm [1].")
+@click.option("--rot-deg", type=float, default=None, help="RMS rotation error, degrees [2].")
+@click.option("--p-flip", type=float, default=None, help="Probability of a symmetric flip [0.5].")
+@click.option("--p-gross", type=float, default=None, help="Probability of a gross error [0.03].")
+@click.option("--p-lookalike", type=float, default=None, help="Probability of a look-alike label swap [0.1].")
+@click.option("--fp-per-image", type=float, default=None, help="Mean false positives per image [0.3].")
+@click.option("--min-visib-fract", type=float, default=None, help="Only GT instances this visible [0.1].")
+@user_errors
+def synth_candidates(dataset: Path, split: str, out: Path, profile: str, seed: int, gt_out, lookalikes,
+                     **knobs) -> None:
+    """Simulate single-view candidates from GT (misses, noise, flips, gross errors, look-alikes, false positives)."""
+    from ..synth import candidates as sc
+
+    sc.main(dataset, split, out, profile=profile, seed=seed, gt_out=gt_out, lookalikes=lookalikes, log=click.echo,
+            **knobs)
+
+
+COMMANDS = [match, synth_candidates]

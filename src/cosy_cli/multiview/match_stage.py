@@ -1,0 +1,500 @@
+"""``cosy match``: object candidate matching over groups of views (CosyPose stage 2).
+
+Inputs: a BOP dataset (``scene_camera.json`` per scene, ``models/`` with ``models_info.json``)
+and candidates as a BOP results CSV (pose of the model in the camera, mm). RGB images are not
+read. Output folder (built atomically: an interrupted run leaves nothing under ``out``):
+
+``matches.csv``
+    ``scene_id,group_id,im_id,obj_id,score,cand_id,object_id``: one row per input candidate, in
+    input order; ``cand_id`` = 0-based data row of the candidates CSV; ``object_id`` = the
+    physical object within its group (>= 0) or -1 when discarded (no match in another view,
+    or a score under ``score_threshold``).
+``view_pairs.csv``
+    ``scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t``: one row per pair of views of a group
+    (im_id_a < im_id_b) with ``T_cam_a_cam_b`` (maps points of camera b into camera a; R
+    row-major, t in mm). ``n_inliers`` = associations of the best hypothesis; the pair is used
+    (linked) when ``n_inliers >= min_inliers`` (any count with known cameras). A pair with no
+    hypothesis at all (no common label) has ``n_inliers`` 0 and the identity. With
+    ``known_cameras`` R, t are the known relative poses.
+``groups.json``
+    Self-describing record for ``cosy refine``: version, conf, dataset, split, candidates path,
+    known_cameras, and per group its scene, image ids, objects (obj_id, member cand_ids and
+    their im_ids), discarded cand_ids, view pairs (with their associations) and timing.
+``candidates.csv``
+    A copy of the input candidates (same rows, same order: cand_id = row).
+
+Groups: one per scene holding all its images (sorted by im_id), or with ``views_per_group`` N
+consecutive groups of N images (a last group of a single image joins the previous one).
+Only scenes with candidates are processed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import CosyError
+from ..io import atomic, bop
+from ..io.dataset import BopDataset
+from ..objects.symmetries import symmetry_set
+from .matching import LabelTable, MatchParams, farthest_point_subset, match_groups
+
+FORMAT_VERSION = 1
+BATCH_CANDIDATES = 2000  # groups are matched together until a batch holds this many candidates
+BATCH_GROUPS = 64
+OUTPUT_FILES = ("matches.csv", "view_pairs.csv", "groups.json", "candidates.csv")
+
+CONFS: dict[str, dict] = {
+    # The paper's values (Sec. 3.2 and the supplementary): 2 cm inlier threshold on D_l,
+    # <= 2000 RANSAC iterations per view pair, >= 3 inliers, continuous symmetries in 64 steps.
+    # n_points (model points for D_l), refit, sym_candidates and ransac_confidence (adaptive
+    # stopping; 1.0 = always draw ransac_iterations) are cosy's choices (see
+    # cosy_cli.multiview.matching).
+    "paper": {
+        "threshold_mm": 20.0,
+        "ransac_iterations": 2000,
+        "ransac_confidence": 0.99,
+        "min_inliers": 3,
+        "score_threshold": 0.0,
+        "symmetry_steps": 64,
+        "n_points": 32,
+        "refit": True,
+        "sym_candidates": 4,
+        "views_per_group": None,
+        "known_cameras": False,
+        "seed": 0,
+    },
+}
+CONFS["paper-norefit"] = {**CONFS["paper"], "refit": False}  # the hypothesis of one candidate pair, as published
+
+
+def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
+    """A full configuration: a named one (or a dict over ``paper``) with overrides (None ignored)."""
+    if conf is None:
+        conf = "paper"
+    if isinstance(conf, str):
+        if conf not in CONFS:
+            raise CosyError(f"unknown configuration {conf!r} (known: {', '.join(CONFS)})")
+        base = dict(CONFS[conf])
+    else:
+        base = {**CONFS["paper"], **dict(conf)}
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    unknown = sorted(set(base) - set(CONFS["paper"]))
+    if unknown:
+        raise CosyError(f"unknown configuration key(s) {', '.join(unknown)} (known: {', '.join(CONFS['paper'])})")
+    checks = {
+        "threshold_mm": lambda v: v > 0, "ransac_iterations": lambda v: v >= 1, "min_inliers": lambda v: v >= 1,
+        "symmetry_steps": lambda v: v >= 1, "n_points": lambda v: v >= 3, "sym_candidates": lambda v: v >= 1,
+        "views_per_group": lambda v: v is None or v >= 2, "ransac_confidence": lambda v: 0 < v <= 1,
+    }
+    for k, ok in checks.items():
+        try:
+            good = ok(base[k])
+        except TypeError:
+            good = False
+        if not good:
+            raise CosyError(f"{k} = {base[k]!r} is out of range")
+    for k in ("ransac_iterations", "min_inliers", "symmetry_steps", "n_points", "sym_candidates", "seed"):
+        base[k] = int(base[k])
+    base["threshold_mm"] = float(base["threshold_mm"])
+    base["ransac_confidence"] = float(base["ransac_confidence"])
+    base["score_threshold"] = float(base["score_threshold"])
+    base["refit"] = bool(base["refit"])
+    base["known_cameras"] = bool(base["known_cameras"])
+    return base
+
+
+def is_complete(out: str | Path) -> bool:
+    out = Path(out)
+    return out.is_dir() and all((out / f).is_file() for f in OUTPUT_FILES)
+
+
+# --------------------------------------------------------------------------------------------
+# model points without trimesh (start-up time): a small PLY reader + area-uniform sampling
+# --------------------------------------------------------------------------------------------
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
+    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+    "double": "f8", "float64": "f8",
+}
+
+
+def read_ply_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (V, 3) and triangles (F, 3) of a PLY file (binary or ASCII), read with numpy.
+
+    Handles the common layouts (scalar vertex properties, triangle faces as one list property).
+    Anything else raises ``ValueError`` (callers fall back to trimesh).
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError("not a PLY file")
+    nl = data.find(b"\n", end)
+    header = data[:end].decode("ascii", "replace").splitlines()
+    body = data[nl + 1:]
+    fmt = None
+    elements: list[dict] = []
+    for line in header:
+        w = line.split()
+        if not w:
+            continue
+        if w[0] == "format":
+            fmt = w[1]
+        elif w[0] == "element":
+            elements.append({"name": w[1], "count": int(w[2]), "props": []})
+        elif w[0] == "property" and elements:
+            if w[1] == "list":
+                elements[-1]["props"].append((w[4], "list", _PLY_TYPES[w[2]], _PLY_TYPES[w[3]]))
+            else:
+                elements[-1]["props"].append((w[2], "scalar", _PLY_TYPES[w[1]], None))
+    names = [e["name"] for e in elements]
+    if "vertex" not in names:
+        raise ValueError("no vertex element")
+    verts, faces = None, None
+    if fmt == "ascii":
+        lines = body.decode("ascii").split("\n")
+        pos = 0
+        for e in elements:
+            block = lines[pos:pos + e["count"]]
+            pos += e["count"]
+            if e["name"] == "vertex":
+                pn = [p[0] for p in e["props"]]
+                arr = np.array(" ".join(block).split(), dtype=np.float64).reshape(e["count"], len(pn))
+                verts = arr[:, [pn.index(a) for a in "xyz"]]
+            elif e["name"] == "face":
+                if len(e["props"]) != 1 or e["props"][0][1] != "list":
+                    raise ValueError("face element layout not handled")
+                arr = np.array(" ".join(block).split(), dtype=np.int64)
+                if e["count"] and (len(arr) != 4 * e["count"] or np.any(arr.reshape(-1, 4)[:, 0] != 3)):
+                    raise ValueError("non-triangle faces")
+                faces = arr.reshape(-1, 4)[:, 1:]
+        return verts, faces
+    if fmt not in ("binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"PLY format {fmt!r}")
+    bo = "<" if fmt == "binary_little_endian" else ">"
+    off = 0
+    for e in elements:
+        if all(p[1] == "scalar" for p in e["props"]):
+            dt = np.dtype([(p[0], bo + p[2]) for p in e["props"]])
+            arr = np.frombuffer(body, dtype=dt, count=e["count"], offset=off)
+            off += dt.itemsize * e["count"]
+            if e["name"] == "vertex":
+                verts = np.stack([arr[a].astype(np.float64) for a in "xyz"], axis=1)
+        elif e["name"] == "face" and sum(p[1] == "list" for p in e["props"]) == 1:
+            fields = []
+            for p in e["props"]:
+                if p[1] == "list":
+                    fields += [("n", bo + p[2]), ("idx", bo + p[3], (3,))]
+                else:
+                    fields.append((p[0], bo + p[2]))
+            dt = np.dtype(fields)
+            arr = np.frombuffer(body, dtype=dt, count=e["count"], offset=off)
+            if e["count"] and np.any(arr["n"] != 3):
+                raise ValueError("non-triangle faces")
+            faces = arr["idx"].astype(np.int64)
+            off += dt.itemsize * e["count"]
+        else:
+            if e["name"] in ("vertex", "face") or verts is None or faces is None:
+                raise ValueError(f"element {e['name']} layout not handled")
+            break  # elements after vertex and face are not needed
+    return verts, faces
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray | None, n: int, seed: int = 0) -> np.ndarray:
+    """n area-uniform points (mm) on the triangles (deterministic); the vertices without faces."""
+    V = np.asarray(vertices, dtype=np.float64)
+    if faces is None or len(faces) == 0:
+        return V
+    tri = V[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if area.sum() <= 0:
+        return V
+    rng = np.random.default_rng(seed)
+    f = rng.choice(len(faces), size=n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    t = tri[f]
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+
+
+def model_points(path: str | Path, n_points: int, seed: int = 0) -> np.ndarray:
+    """``n_points`` well-spread surface points (mm) of a model: 2000 area-uniform samples, then
+    farthest-point sampling. Reads PLYs with numpy; other files (or odd PLYs) with trimesh."""
+    path = Path(path)
+    if not path.is_file():
+        raise CosyError("model file not found (BOP models are models/obj_XXXXXX.ply)", path=path)
+    try:
+        if path.suffix.lower() != ".ply":
+            raise ValueError("not a PLY")
+        V, F = read_ply_mesh(path)
+    except (ValueError, KeyError, IndexError, UnicodeDecodeError):
+        from ..objects.database import load_mesh
+
+        mesh = load_mesh(path)
+        V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    if V is None or len(V) == 0 or not np.all(np.isfinite(V)):
+        raise CosyError("model has no (finite) vertices", path=path)
+    if F is not None and len(F) and (F.min() < 0 or F.max() >= len(V)):
+        raise CosyError("face index out of range", path=path)
+    X = farthest_point_subset(sample_surface(V, F, 2000, seed), n_points)
+    return X[np.arange(n_points) % len(X)]  # fewer points (a small point cloud): cycled, N for every label
+
+
+def load_label_table(ds: BopDataset, obj_ids, n_points: int = 32, symmetry_steps: int = 64) -> LabelTable:
+    """LabelTable of ``obj_ids`` from the dataset's models folder (points and symmetry sets)."""
+    infos = ds.models_info()
+    pts, syms, align, cont, axes = [], [], [], [], []
+    for o in obj_ids:
+        info = infos[int(o)]
+        X = model_points(ds.model_path(o), n_points)
+        pts.append(X)
+        syms.append(symmetry_set(info.symmetries_discrete, info.symmetries_continuous, symmetry_steps))
+        cont.append(bool(info.symmetries_continuous))
+        if info.symmetries_continuous:  # align on the axis: invariant under the continuous symmetry
+            a = np.asarray(info.symmetries_continuous[0]["axis"], dtype=np.float64)
+            a = a / np.linalg.norm(a)
+            c = np.asarray(info.symmetries_continuous[0].get("offset", np.zeros(3)), dtype=np.float64)
+            align.append(c + ((X - c) @ a)[:, None] * a)
+            axes.append((a, c))
+        else:
+            align.append(X)
+            axes.append(None)
+    return LabelTable(obj_ids, pts, syms, align_points=align, continuous=cont, axes=axes)
+
+
+# --------------------------------------------------------------------------------------------
+# the stage
+# --------------------------------------------------------------------------------------------
+def _row(i: int) -> str:
+    return f"row {i + 1}"
+
+
+def make_groups(ds: BopDataset, scene_ids, views_per_group: int | None) -> list[dict]:
+    """[{scene_id, group_id, im_ids}] for the scenes, images sorted by im_id."""
+    groups = []
+    for s in scene_ids:
+        ims = sorted(ds.scene_camera(s))
+        if views_per_group is None:
+            chunks = [ims]
+        else:
+            chunks = [ims[k:k + views_per_group] for k in range(0, len(ims), views_per_group)]
+            if len(chunks) > 1 and len(chunks[-1]) == 1:
+                last = chunks.pop()
+                chunks[-1] = chunks[-1] + last
+        for g, c in enumerate(chunks):
+            groups.append({"scene_id": int(s), "group_id": g, "im_ids": [int(x) for x in c]})
+    return groups
+
+
+def _check_inputs(ds: BopDataset, cands: bop.PoseResults, csv_path: Path, known_cameras: bool) -> None:
+    tab = cands.table
+    infos = ds.models_info()
+    obj = tab["obj_id"].to_numpy()
+    bad = np.flatnonzero(~np.isin(obj, np.array(sorted(infos), dtype=np.int64)))
+    if len(bad):
+        i = int(bad[0])
+        raise CosyError(f"obj_id {obj[i]} is not in the dataset's models ({ds.models_info_path} has "
+                        f"{', '.join(map(str, sorted(infos)))})", path=csv_path, where=_row(i))
+    scenes = tab["scene_id"].to_numpy()
+    ims = tab["im_id"].to_numpy()
+    known_scenes = set(ds.scene_ids)
+    order = np.argsort(scenes, kind="stable")
+    uniq, starts = np.unique(scenes[order], return_index=True)
+    for s, a, b in zip(uniq.tolist(), starts.tolist(), np.r_[starts[1:], len(order)].tolist()):
+        rows = order[a:b]  # the scene's rows, in file order
+        first = int(rows[0])
+        if int(s) not in known_scenes:
+            known = ", ".join(map(str, sorted(known_scenes)))
+            raise CosyError(f"scene_id {s} is not in {ds.split_dir} (scenes: {known})",
+                            path=csv_path, where=_row(first))
+        cams = ds.scene_camera(int(s))
+        badim = rows[~np.isin(ims[rows], np.array(sorted(cams), dtype=np.int64))]
+        if len(badim):
+            i = int(badim[0])
+            raise CosyError(f"im_id {ims[i]} is not an image of scene {s} ({ds.scene_file(int(s), 'scene_camera')} "
+                            f"has {len(cams)} images)", path=csv_path, where=_row(i))
+        if len(cams) < 2:
+            raise CosyError(f"scene {s} has a single view (image {next(iter(cams))} in "
+                            f"{ds.scene_file(int(s), 'scene_camera')}): matching needs at least 2 views",
+                            path=csv_path, where=_row(first))
+        if known_cameras:
+            for im, c in cams.items():
+                if c.T_cam_world is None:
+                    raise CosyError("--known-cameras needs cam_R_w2c and cam_t_w2c for every image",
+                                    path=ds.scene_file(int(s), "scene_camera"), where=f"image {im}")
+
+
+def _fmt_pose(T: np.ndarray) -> tuple[str, str]:
+    return " ".join(f"{v:.9g}" for v in T[:3, :3].reshape(-1)), " ".join(f"{v:.6f}" for v in T[:3, 3])
+
+
+def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = True):
+    """Match every group; returns (groups (list of dicts with results), object_id (n,), group_of (n,))."""
+    from threadpoolctl import threadpool_limits
+
+    tab = cands.table
+    n = len(tab)
+    scenes = tab["scene_id"].to_numpy()
+    ims = tab["im_id"].to_numpy()
+    objs = tab["obj_id"].to_numpy()
+    score = tab["score"].to_numpy()
+    object_id = np.full(n, -1, dtype=np.int64)
+    group_of = np.full(n, -1, dtype=np.int64)
+    groups = make_groups(ds, sorted(int(s) for s in np.unique(scenes)), conf["views_per_group"])
+    used = sorted(int(o) for o in np.unique(objs))
+    table = load_label_table(ds, used, conf["n_points"], conf["symmetry_steps"]) if used else None
+    params = MatchParams(threshold_mm=conf["threshold_mm"], ransac_iterations=conf["ransac_iterations"],
+                         min_inliers=conf["min_inliers"], refit=conf["refit"], sym_candidates=conf["sym_candidates"],
+                         ransac_confidence=conf["ransac_confidence"])
+    lab_all = table.index_of(objs) if used else np.zeros(0, dtype=np.int64)
+    # candidates of each (scene, im)
+    key = scenes * (1 << 32) + ims
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    bar = None
+    if progress and n > 5000:  # about a second or more
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(groups), desc="match", unit="group", leave=False, disable=None)
+    # groups are matched in batches (same results as one by one, less overhead per group)
+    batch: list[int] = []
+    n_batch = 0
+
+    def flush():
+        if not batch:
+            return
+        t0 = time.perf_counter()
+        inputs = [(groups[k]["view"], lab_all[groups[k]["cand_idx"]], cands.T_cam_obj[groups[k]["cand_idx"]],
+                   len(groups[k]["im_ids"]), groups[k]["T_cw"]) for k in batch]
+        seeds = [[conf["seed"], groups[k]["scene_id"], groups[k]["group_id"]] for k in batch]
+        results = match_groups(inputs, table, params, seeds)
+        dt = (time.perf_counter() - t0) / len(batch)
+        for k, res in zip(batch, results):
+            groups[k]["result"] = res
+            groups[k]["time_s"] = dt
+            object_id[groups[k]["cand_idx"]] = res.object_id
+            del groups[k]["view"], groups[k]["T_cw"]
+        if bar is not None:
+            bar.update(len(batch))
+        batch.clear()
+
+    with threadpool_limits(1):
+        for gi, g in enumerate(groups):
+            s = g["scene_id"]
+            gkeys = s * (1 << 32) + np.array(g["im_ids"], dtype=np.int64)
+            lo = np.searchsorted(skey, gkeys, "left")
+            hi = np.searchsorted(skey, gkeys, "right")
+            idx = np.sort(np.concatenate([order[a:b] for a, b in zip(lo, hi)]))
+            group_of[idx] = gi
+            idx = idx[score[idx] >= conf["score_threshold"]]
+            g["cand_idx"] = idx
+            g["view"] = np.searchsorted(np.array(g["im_ids"]), ims[idx])
+            g["T_cw"] = None
+            if conf["known_cameras"]:
+                cams = ds.scene_camera(s)
+                g["T_cw"] = np.stack([cams[i].T_cam_world for i in g["im_ids"]])
+            batch.append(gi)
+            n_batch += len(idx)
+            if n_batch >= BATCH_CANDIDATES or len(batch) >= BATCH_GROUPS:
+                flush()
+                n_batch = 0
+        flush()
+    if bar is not None:
+        bar.close()
+    return groups, object_id, group_of
+
+
+def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands: bop.PoseResults, groups,
+                   object_id, group_of, summary: dict) -> None:
+    tab = cands.table
+    ims = tab["im_id"].to_numpy()
+    lines = ["scene_id,group_id,im_id,obj_id,score,cand_id,object_id"]
+    sc, ob, scr = tab["scene_id"].to_numpy(), tab["obj_id"].to_numpy(), tab["score"].to_numpy()
+    gid = [groups[g]["group_id"] if g >= 0 else -1 for g in group_of]
+    for i in range(len(tab)):
+        lines.append(f"{sc[i]},{gid[i]},{ims[i]},{ob[i]},{scr[i]:.9g},{i},{object_id[i]}")
+    # plain writes: the whole folder is renamed into place at the end (atomic_dir)
+    (tmp / "matches.csv").write_text("\n".join(lines) + "\n")
+    vlines = ["scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t"]
+    out_groups = []
+    for gi, g in enumerate(groups):
+        res, idx, im_ids = g["result"], g["cand_idx"], g["im_ids"]
+        pairs = []
+        for p, (a, b) in enumerate(res.pair_views):
+            R, t = _fmt_pose(res.T_ab[p])
+            vlines.append(f"{g['scene_id']},{g['group_id']},{im_ids[a]},{im_ids[b]},{res.n_inliers[p]},{R},{t}")
+            e = np.flatnonzero(res.edge_pair == p)
+            pairs.append({
+                "im_id_a": im_ids[a], "im_id_b": im_ids[b], "n_inliers": int(res.n_inliers[p]),
+                "linked": bool(res.linked[p]), "n_hypotheses": int(res.n_hypotheses[p]),
+                "T_cam_a_cam_b": [[float(f"{v:.10g}") for v in row] for row in res.T_ab[p]],
+                "associations": [[int(idx[res.edges[k, 0]]), int(idx[res.edges[k, 1]]),
+                                  float(f"{res.edge_dist[k]:.4f}"), bool(res.edge_kept[k])] for k in e],
+            })
+        objects = []
+        for o in range(res.n_objects):
+            members = idx[res.object_id == o]
+            objects.append({"object_id": o, "obj_id": int(ob[members[0]]),
+                            "cand_ids": [int(c) for c in members], "im_ids": [int(ims[c]) for c in members]})
+        members_all = np.flatnonzero(group_of == gi)
+        out_groups.append({
+            "scene_id": g["scene_id"], "group_id": g["group_id"], "im_ids": im_ids,
+            "n_candidates": int(len(members_all)), "objects": objects,
+            "discarded": [int(c) for c in members_all if object_id[c] < 0],
+            "view_pairs": pairs, "time_s": round(g["time_s"], 6),
+        })
+    (tmp / "view_pairs.csv").write_text("\n".join(vlines) + "\n")
+    (tmp / "candidates.csv").write_text(bop.format_results(cands))
+    doc = {
+        "format": "cosy-match", "version": FORMAT_VERSION, "cosy_version": __version__, "conf": conf,
+        "dataset": str(Path(ds.root).resolve()), "split": ds.split, "candidates": str(Path(csv_path).resolve()),
+        "candidates_copy": "candidates.csv", "known_cameras": conf["known_cameras"],
+        "units": {"t": "mm", "poses": "T_cam_a_cam_b maps points of camera b into camera a"},
+        "association_fields": ["cand_id_a", "cand_id_b", "D_l_mm", "kept_in_graph"],
+        "summary": summary, "groups": out_groups,
+    }
+    (tmp / "groups.json").write_text(json.dumps(doc, separators=(",", ":")) + "\n")  # compact: C encoder
+
+
+def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_csv: str | Path, out: str | Path,
+         overwrite: bool = False, *, log=print, progress: bool = True) -> dict | None:
+    """Run ``cosy match``; returns the summary dict (None when skipped because ``out`` is complete)."""
+    t_start = time.perf_counter()
+    conf = resolve_conf(conf)
+    out = Path(out)
+    if out.exists() and not overwrite:
+        if is_complete(out):
+            log(f"match: {out} exists and is complete, skipping (use --overwrite to recompute)")
+            return None
+        raise CosyError("exists but is not a complete match output (use --overwrite to replace it)", path=out)
+    csv_path = Path(candidates_csv)
+    ds = BopDataset(dataset, split)
+    cands = bop.read_results(csv_path)
+    _check_inputs(ds, cands, csv_path, conf["known_cameras"])
+    t0 = time.perf_counter()
+    groups, object_id, group_of = run(conf, ds, cands, progress=progress)
+    t_match = time.perf_counter() - t0
+    times = np.array([g["time_s"] for g in groups]) if groups else np.zeros(0)
+    n_obj = sum(g["result"].n_objects for g in groups)
+    kept = int((object_id >= 0).sum())
+    summary = {
+        "groups": len(groups), "candidates": len(cands), "kept": kept, "discarded": len(cands) - kept,
+        "objects": int(n_obj), "linked_view_pairs": int(sum(g["result"].linked.sum() for g in groups)),
+        "view_pairs": int(sum(len(g["result"].linked) for g in groups)),
+        "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
+        "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
+        "time_matching_s": round(t_match, 4),
+    }
+    with atomic.atomic_dir(out, overwrite=overwrite) as tmp:
+        _write_outputs(tmp, conf, ds, csv_path, cands, groups, object_id, group_of, summary)
+    log(f"match: {summary['groups']} groups, {summary['candidates']} candidates: {kept} kept in {n_obj} objects, "
+        f"{summary['discarded']} discarded; {summary['linked_view_pairs']}/{summary['view_pairs']} view pairs linked; "
+        f"{summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "
+        f"total {time.perf_counter() - t_start:.2f} s -> {out}")
+    return summary
