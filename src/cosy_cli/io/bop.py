@@ -197,25 +197,30 @@ class GtInstance:
     T_cam_obj: np.ndarray  # (4, 4), translation in mm
 
 
-def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
-    path = Path(path)
+def _read_per_image_lists(path: Path, parse_instance) -> dict:
+    """{im_id: [parse_instance(entry, where), ...]} from a JSON object of per-image lists."""
     data = _top_dict(load_json(path), path)
-    out: dict[int, list[GtInstance]] = {}
+    out: dict = {}
     for key, insts in data.items():
         im_id = _int_key(key, path)
         if not isinstance(insts, list):
             raise CosyError(f"expected a list of instances, got {type(insts).__name__}", path=path, where=f"image {key}")
-        lst = []
-        for i, inst in enumerate(insts):
-            where = f"image {key}, instance {i}"
-            obj_id = _require(inst, "obj_id", path, where)
-            if not isinstance(obj_id, int) or isinstance(obj_id, bool):
-                raise CosyError(f"obj_id: expected an integer, got {obj_id!r}", path=path, where=where)
-            R = _numbers(_require(inst, "cam_R_m2c", path, where), 9, path, where, "cam_R_m2c")
-            t = _numbers(_require(inst, "cam_t_m2c", path, where), 3, path, where, "cam_t_m2c")
-            lst.append(GtInstance(obj_id=obj_id, T_cam_obj=pose_from_Rt(R, t)))
-        out[im_id] = lst
+        out[im_id] = [parse_instance(inst, f"image {key}, instance {i}") for i, inst in enumerate(insts)]
     return dict(sorted(out.items()))
+
+
+def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
+    path = Path(path)
+
+    def parse(inst: Any, where: str) -> GtInstance:
+        obj_id = _require(inst, "obj_id", path, where)
+        if not isinstance(obj_id, int) or isinstance(obj_id, bool):
+            raise CosyError(f"obj_id: expected an integer, got {obj_id!r}", path=path, where=where)
+        R = _numbers(_require(inst, "cam_R_m2c", path, where), 9, path, where, "cam_R_m2c")
+        t = _numbers(_require(inst, "cam_t_m2c", path, where), 3, path, where, "cam_t_m2c")
+        return GtInstance(obj_id=obj_id, T_cam_obj=pose_from_Rt(R, t))
+
+    return _read_per_image_lists(path, parse)
 
 
 def write_scene_gt(path: str | Path, gt: Mapping[int, list[GtInstance]]) -> None:
@@ -241,26 +246,17 @@ class GtInfo:
 
 def read_scene_gt_info(path: str | Path) -> dict[int, list[GtInfo]]:
     path = Path(path)
-    data = _top_dict(load_json(path), path)
-    out: dict[int, list[GtInfo]] = {}
-    for key, insts in data.items():
-        im_id = _int_key(key, path)
-        if not isinstance(insts, list):
-            raise CosyError(f"expected a list of instances, got {type(insts).__name__}", path=path, where=f"image {key}")
-        lst = []
-        for i, inst in enumerate(insts):
-            where = f"image {key}, instance {i}"
-            vals = {}
-            for k in GT_INFO_KEYS:
-                n = 4 if k.startswith("bbox") else 1
-                vals[k] = _numbers(_require(inst, k, path, where), n, path, where, k)
-            lst.append(GtInfo(
-                bbox_obj=vals["bbox_obj"], bbox_visib=vals["bbox_visib"],
-                px_count_all=int(vals["px_count_all"][0]), px_count_valid=int(vals["px_count_valid"][0]),
-                px_count_visib=int(vals["px_count_visib"][0]), visib_fract=float(vals["visib_fract"][0]),
-            ))
-        out[im_id] = lst
-    return dict(sorted(out.items()))
+
+    def parse(inst: Any, where: str) -> GtInfo:
+        vals = {k: _numbers(_require(inst, k, path, where), 4 if k.startswith("bbox") else 1, path, where, k)
+                for k in GT_INFO_KEYS}
+        return GtInfo(
+            bbox_obj=vals["bbox_obj"], bbox_visib=vals["bbox_visib"],
+            px_count_all=int(vals["px_count_all"][0]), px_count_valid=int(vals["px_count_valid"][0]),
+            px_count_visib=int(vals["px_count_visib"][0]), visib_fract=float(vals["visib_fract"][0]),
+        )
+
+    return _read_per_image_lists(path, parse)
 
 
 def write_scene_gt_info(path: str | Path, info: Mapping[int, list[GtInfo]]) -> None:
