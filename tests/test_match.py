@@ -374,6 +374,14 @@ def test_cli_skips_complete_output_and_overwrites(tables, tmp_path):
     r = runner.invoke(cli, args + ["--overwrite", "--known-cameras", "--threshold-mm", "15"])
     assert r.exit_code == 0, r.output
     assert json.loads((out / "groups.json").read_text())["conf"]["threshold_mm"] == 15.0
+    # the complete output was made with other settings than these: refused, not silently reused
+    r = runner.invoke(cli, args)
+    assert r.exit_code == 2 and "settings changed" in r.output and "known_cameras" in r.output
+    r = runner.invoke(cli, args + ["--known-cameras", "--threshold-mm", "15"])
+    assert r.exit_code == 0 and "up to date, skipping" in r.output
+    csv.write_text(csv.read_text() + csv.read_text().splitlines()[1] + "\n")  # the input changed
+    r = runner.invoke(cli, args + ["--known-cameras", "--threshold-mm", "15"])
+    assert r.exit_code == 2 and "candidates file changed" in r.output
     (out / "matches.csv").unlink()  # incomplete folder: refused without --overwrite
     r = runner.invoke(cli, args)
     assert r.exit_code == 2 and "not a complete match output" in r.output

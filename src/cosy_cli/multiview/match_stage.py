@@ -108,6 +108,34 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     return base
 
 
+def file_sha1(path: str | Path) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, candidates_csv: str | Path) -> list[str]:
+    """Why a complete ``out`` does not correspond to these inputs and settings (empty: it does)."""
+    try:
+        doc = json.loads((out / "groups.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return ["groups.json unreadable"]
+    reasons = []
+    if doc.get("conf") != json.loads(json.dumps(conf)):
+        changed = sorted(k for k in set(conf) | set(doc.get("conf") or {})
+                         if (doc.get("conf") or {}).get(k) != json.loads(json.dumps(conf)).get(k))
+        reasons.append(f"settings changed ({', '.join(changed)})")
+    if doc.get("dataset") != str(Path(dataset).resolve()) or doc.get("split") != split:
+        reasons.append("another dataset or split")
+    if Path(candidates_csv).is_file() and doc.get("candidates_sha1") != file_sha1(candidates_csv):
+        reasons.append("the candidates file changed")
+    return reasons
+
+
 def is_complete(out: str | Path) -> bool:
     out = Path(out)
     return out.is_dir() and all((out / f).is_file() for f in OUTPUT_FILES)
@@ -454,6 +482,7 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
     doc = {
         "format": "cosy-match", "version": FORMAT_VERSION, "cosy_version": __version__, "conf": conf,
         "dataset": str(Path(ds.root).resolve()), "split": ds.split, "candidates": str(Path(csv_path).resolve()),
+        "candidates_sha1": file_sha1(csv_path),
         "candidates_copy": "candidates.csv", "known_cameras": conf["known_cameras"],
         "units": {"t": "mm", "poses": "T_cam_a_cam_b maps points of camera b into camera a"},
         "association_fields": ["cand_id_a", "cand_id_b", "D_l_mm", "kept_in_graph"],
@@ -470,7 +499,11 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
     out = Path(out)
     if out.exists() and not overwrite:
         if is_complete(out):
-            log(f"match: {out} exists and is complete, skipping (use --overwrite to recompute)")
+            reasons = stale_reasons(out, conf, dataset, split, candidates_csv)
+            if reasons:
+                raise CosyError(f"exists but was made from other inputs: {'; '.join(reasons)} "
+                                "(use --overwrite to recompute)", path=out)
+            log(f"match: {out} exists and is up to date, skipping (use --overwrite to recompute)")
             return None
         raise CosyError("exists but is not a complete match output (use --overwrite to replace it)", path=out)
     csv_path = Path(candidates_csv)
