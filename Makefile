@@ -36,8 +36,13 @@ $(VENV)/.installed: pyproject.toml
 
 $(VENV): $(VENV)/.installed
 
+DEMO_OUT ?= demo_out
 demo: $(VENV)/.installed
 	$(COSY) validate --dataset data_samples --split test
+	$(COSY) synth-candidates --dataset data_samples --split test --out $(DEMO_OUT)/candidates.csv --seed 0 \
+	  --gt-out $(DEMO_OUT)/candidates_gt.csv
+	$(COSY) match --dataset data_samples --split test --candidates $(DEMO_OUT)/candidates.csv --out $(DEMO_OUT)/match
+	@echo "demo outputs in $(DEMO_OUT)/"
 
 test: $(VENV)/.installed
 	$(PY) -m pytest tests
