@@ -1,0 +1,444 @@
+"""``cosy refine``: one consistent scene per group of views (CosyPose stage 3).
+
+Inputs: what ``cosy match`` wrote (``MATCH_DIR/groups.json``: groups, physical objects and
+their candidates, view pairs with relative poses; ``MATCH_DIR/candidates.csv``: the candidate
+poses) and the dataset's cameras (K, and the camera poses when match ran with
+``--known-cameras``) and models (points, symmetries). Per group: cameras are placed by chaining
+the linked view pairs' relative poses over a maximum-inlier spanning tree (or taken from the
+dataset with known cameras), objects from their best-scoring candidate, then cameras and
+objects are refined jointly by the object-level bundle adjustment of
+:mod:`cosy_cli.multiview.bundle_adjustment`.
+
+Output folder (built atomically):
+
+``scene.json``
+    ``{"format": "cosy-refine", "version", "conf", "matches", ..., "world_frame",
+    "groups": [{"scene_id", "group_id", "gauge_im_id", "cameras": [{"im_id", "T_world_cam"}],
+    "unplaced_im_ids", "objects": [{"object_id", "obj_id", "score", "n_candidates", "cand_ids",
+    "reprojection_error_px", "T_world_obj"}], "stats": {...}}], "summary": {...}}``. 4x4
+    matrices in mm; the world frame is the gauge camera's frame (the view with most inliers),
+    or the dataset's world frame when match ran with ``--known-cameras``. ``stats``:
+    iterations, converged, initial and final cost (px^2: mean truncated squared reprojection
+    error), reprojection error per view (px, initial and final), candidates used, time.
+``predictions.csv``
+    BOP results: one row per (object, placed camera): the object's pose in that camera,
+    T_cam_obj = inv(T_world_cam) T_world_obj; score = the object's score (the best score of its
+    candidates); time = seconds spent on the group. With ``keep_unmatched`` the candidates that
+    could not be used (discarded by match, or in views/objects that could not be placed) are
+    added unchanged with their score times ``unmatched_score_factor`` (so they rank below),
+    unless a refined prediction of the same object label lies within ``unmatched_dedup_mm`` of
+    them in that image.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import CosyError
+from ..geometry.poses import invert
+from ..io import atomic, bop
+from ..io.dataset import BopDataset
+from ..objects.symmetries import symmetry_set
+from . import bundle_adjustment as ba
+
+FORMAT_VERSION = 1
+OUTPUT_FILES = ("scene.json", "predictions.csv")
+MATCH_FORMAT = ("cosy-match", 1)
+
+DEFAULT_CONF = {
+    "iterations": ba.DEFAULT_ITERATIONS,  # LM iterations at most (paper: 100)
+    "loss_threshold_px": ba.DEFAULT_LOSS_THRESHOLD_PX,  # truncation of the reprojection loss
+    "n_points": ba.DEFAULT_N_POINTS,  # model points per object label in the residuals
+    "symmetry_steps": ba.DEFAULT_N_CONTINUOUS,  # continuous symmetries, steps per turn (paper: 64)
+    "keep_unmatched": False,
+    "unmatched_score_factor": 0.1,
+    "unmatched_dedup_mm": 20.0,
+    "nms_mm": 0.0,  # merge objects of one label whose centres are closer (0: off)
+    # Two solid objects cannot share the space: objects of any labels whose centres are closer
+    # than this fraction of the smaller diameter are one physical object (typically a look-alike
+    # whose label was swapped in several views); the weaker one is dropped (0: off).
+    "exclusion_frac": 0.5,
+}
+
+
+def resolve_conf(conf: dict | None = None, **overrides) -> dict:
+    """The full configuration: defaults, then ``conf``, then overrides (None ignored), checked."""
+    base = dict(DEFAULT_CONF)
+    base.update(conf or {})
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    unknown = sorted(set(base) - set(DEFAULT_CONF))
+    if unknown:
+        raise CosyError(f"unknown refine setting(s): {', '.join(unknown)}")
+    base["iterations"] = int(base["iterations"])
+    base["n_points"] = int(base["n_points"])
+    base["symmetry_steps"] = int(base["symmetry_steps"])
+    for k in ("loss_threshold_px", "unmatched_score_factor", "unmatched_dedup_mm", "nms_mm", "exclusion_frac"):
+        base[k] = float(base[k])
+    base["keep_unmatched"] = bool(base["keep_unmatched"])
+    if base["iterations"] < 1 or base["n_points"] < 3 or base["symmetry_steps"] < 1 or base["loss_threshold_px"] <= 0 \
+            or base["nms_mm"] < 0 or base["exclusion_frac"] < 0 or base["unmatched_dedup_mm"] < 0 or base["unmatched_score_factor"] < 0:
+        raise CosyError("refine settings out of range (iterations >= 1, n_points >= 3, loss threshold > 0, "
+                        "distances >= 0)")
+    return base
+
+
+# --------------------------------------------------------------------------------------------
+# inputs
+# --------------------------------------------------------------------------------------------
+
+def read_match_dir(matches: str | Path) -> tuple[dict, bop.PoseResults]:
+    """groups.json (checked for format and version) and the candidates copy of a match output."""
+    from . import match_stage
+
+    matches = Path(matches)
+    if not match_stage.is_complete(matches):
+        missing = [f for f in match_stage.OUTPUT_FILES if not (matches / f).is_file()]
+        raise CosyError(f"not a complete cosy match output (missing {', '.join(missing)})", path=matches)
+    path = matches / "groups.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise CosyError(f"cannot read ({e})", path=path) from None
+    if not isinstance(doc, dict) or (doc.get("format"), doc.get("version")) != MATCH_FORMAT:
+        raise CosyError(f"expected format {MATCH_FORMAT[0]!r} version {MATCH_FORMAT[1]}, got "
+                        f"{doc.get('format')!r} version {doc.get('version')!r}" if isinstance(doc, dict) else
+                        "expected a JSON object", path=path)
+    for k in ("groups", "split", "dataset", "known_cameras"):
+        if k not in doc:
+            raise CosyError(f"missing key {k!r}", path=path)
+    cands = bop.read_results(matches / doc.get("candidates_copy", "candidates.csv"))
+    n = len(cands)
+    for gi, g in enumerate(doc["groups"]):
+        for key in ("scene_id", "group_id", "im_ids", "objects", "view_pairs", "discarded"):
+            if key not in g:
+                raise CosyError(f"missing key {key!r}", path=path, where=f"groups[{gi}]")
+        ids = [c for o in g["objects"] for c in o["cand_ids"]] + list(g["discarded"])
+        bad = [c for c in ids if not (0 <= int(c) < n)]
+        if bad:
+            raise CosyError(f"cand_id {bad[0]} is not a row of the candidates copy ({n} rows)", path=path,
+                            where=f"groups[{gi}]")
+    return doc, cands
+
+
+def label_geometry(ds: BopDataset, obj_id: int, n_points: int, symmetry_steps: int) -> ba.LabelGeometry:
+    """Model points (farthest-point samples of the surface) and symmetries of one object label."""
+    from .match_stage import model_points
+
+    info = ds.models_info()[int(obj_id)]
+    X = model_points(ds.model_path(obj_id), n_points)
+    S = symmetry_set(info.symmetries_discrete, info.symmetries_continuous, symmetry_steps)
+    axis = offset = None
+    if len(info.symmetries_continuous) == 1:
+        axis = info.symmetries_continuous[0]["axis"]
+        offset = info.symmetries_continuous[0].get("offset", np.zeros(3))
+    return ba.LabelGeometry.create(X, S, axis, offset, n_points=n_points)
+
+
+# --------------------------------------------------------------------------------------------
+# one group
+# --------------------------------------------------------------------------------------------
+
+def _nms(T_world_obj: np.ndarray, obj_ids: np.ndarray, n_cands: np.ndarray, scores: np.ndarray, d_mm: float,
+         diameters: np.ndarray | None = None, exclusion_frac: float = 0.0):
+    """Greedy suppression of objects that cannot both be real, strongest first (most candidates,
+    then best score):
+
+    * same label, centres closer than ``d_mm``: merged into the stronger (3D NMS);
+    * any labels, centres closer than ``exclusion_frac`` x the smaller diameter (mm): two solids
+      cannot overlap that much, the weaker is dropped (into = -1).
+
+    Returns (keep mask (N,), into (N,): the kept object each one was merged into, -1 if dropped)."""
+    N = len(obj_ids)
+    order = np.lexsort((np.arange(N), -scores, -n_cands))
+    keep = np.zeros(N, dtype=bool)
+    into = np.arange(N)
+    c = T_world_obj[:, :3, 3]
+    dist = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    same = obj_ids[:, None] == obj_ids[None]
+    merge = same & (dist < d_mm)
+    exclude = np.zeros_like(merge)
+    if diameters is not None and exclusion_frac > 0:
+        exclude = dist < exclusion_frac * np.minimum(diameters[:, None], diameters[None])
+    for i in order:  # a loop over objects (tens), not points
+        kept = np.flatnonzero(keep)
+        m = kept[merge[i, kept]]
+        if len(m):
+            into[i] = m[np.argmin(dist[i, m])]
+            continue
+        if exclude[i, kept].any():
+            into[i] = -1
+            continue
+        keep[i] = True
+    return keep, into
+
+
+def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict, conf: dict,
+                 known_cameras: bool) -> dict:
+    """Refine one group of groups.json. ``geometry``: {obj_id: LabelGeometry}. Returns the
+    group's scene.json entry plus private keys: "_pred" (rows of predictions) and "_unused"
+    (cand_ids not used in the scene)."""
+    t0 = time.perf_counter()
+    s = int(g["scene_id"])
+    im_ids = [int(i) for i in g["im_ids"]]
+    cams = ds.scene_camera(s)
+    missing = [i for i in im_ids if i not in cams]
+    if missing:
+        raise CosyError(f"image {missing[0]} of scene {s} (group {g['group_id']} in groups.json) is not in "
+                        "the dataset's scene_camera.json", path=ds.scene_file(s, "scene_camera"))
+    if known_cameras:
+        no_pose = [i for i in im_ids if cams[i].T_cam_world is None]
+        if no_pose:
+            raise CosyError("match ran with --known-cameras but the camera pose (cam_R_w2c, cam_t_w2c) is missing",
+                            path=ds.scene_file(s, "scene_camera"), where=f"image {no_pose[0]}")
+        placed = {i: invert(cams[i].T_cam_world) for i in im_ids}
+        unplaced: list[int] = []
+        gauge = None
+    else:
+        pairs = [p for p in g["view_pairs"] if p.get("linked")]
+        pair_poses = {(int(p["im_id_a"]), int(p["im_id_b"])): np.asarray(p["T_cam_a_cam_b"], dtype=np.float64)
+                      for p in pairs}
+        inliers = {(int(p["im_id_a"]), int(p["im_id_b"])): float(p["n_inliers"]) for p in pairs}
+        placed, unplaced = ba.initialise_cameras(im_ids, pair_poses, inliers)
+        gauge = next(iter(placed))
+    views = list(placed)
+    vidx = {v: k for k, v in enumerate(views)}
+    tab = cands.table
+    c_im = tab["im_id"].to_numpy()
+    c_obj = tab["obj_id"].to_numpy()
+    c_score = tab["score"].to_numpy()
+
+    # candidates of objects, in placed views
+    cand_ids, cand_obj, objs = [], [], []
+    unused = [int(c) for c in g["discarded"]]
+    for o in g["objects"]:
+        members = [int(c) for c in o["cand_ids"] if int(c_im[int(c)]) in vidx]
+        unused += [int(c) for c in o["cand_ids"] if int(c_im[int(c)]) not in vidx]
+        if not members:
+            continue
+        cand_obj += [len(objs)] * len(members)
+        cand_ids += members
+        objs.append(o)
+    cand_ids = np.array(cand_ids, dtype=np.int64)
+    cand_obj = np.array(cand_obj, dtype=np.int64)
+    Twc = np.stack([placed[v] for v in views])
+    K = np.stack([cams[v].K for v in views])
+    stats: dict = {"iterations": 0, "converged": True, "initial_cost_px2": 0.0, "final_cost_px2": 0.0,
+                   "n_candidates": int(len(cand_ids)), "n_unused_candidates": len(unused)}
+    objects_out = []
+    T_world_obj = np.zeros((0, 4, 4))
+    if len(objs):
+        labels = sorted({int(o["obj_id"]) for o in objs})
+        lab_index = {o: k for k, o in enumerate(labels)}
+        geo = [geometry[o] for o in labels]
+        obj_label = np.array([lab_index[int(o["obj_id"])] for o in objs])
+        cv = np.array([vidx[int(c_im[c])] for c in cand_ids])
+        T_cam_cand = cands.T_cam_obj[cand_ids]
+        Two, sym, _ = ba.initialise_objects(Twc, cv, cand_obj, T_cam_cand, obj_label, geo, c_score[cand_ids])
+        S0 = np.stack([geo[obj_label[o]].symmetries[k] for o, k in zip(cand_obj, sym)])
+        res = ba.bundle_adjust(Twc, Two, cv, cand_obj, T_cam_cand, K, obj_label, geo,
+                               iterations=conf["iterations"], loss_threshold_px=conf["loss_threshold_px"],
+                               fixed_views="all" if known_cameras else 0, symmetries=S0)
+        Twc, T_world_obj = res.T_world_cam, res.T_world_obj
+        n_c = np.bincount(cand_obj, minlength=len(objs))
+        score = np.full(len(objs), -np.inf)
+        np.maximum.at(score, cand_obj, c_score[cand_ids])
+        err = np.bincount(cand_obj, weights=np.nan_to_num(res.cand_error_px), minlength=len(objs)) / n_c
+        o_ids = np.array([int(o["obj_id"]) for o in objs])
+        keep, into = _nms(T_world_obj, o_ids, n_c, score, conf["nms_mm"],
+                          np.array([ds.models_info()[int(o)].diameter for o in o_ids]), conf["exclusion_frac"])
+        for k, o in enumerate(objs):
+            if not keep[k]:
+                continue
+            merged = np.flatnonzero(into == k)
+            ids = cand_ids[np.isin(cand_obj, merged)]
+            entry = {"object_id": int(o["object_id"]), "obj_id": int(o["obj_id"]), "score": float(score[merged].max()),
+                     "n_candidates": int(len(ids)), "cand_ids": [int(c) for c in ids],
+                     "reprojection_error_px": round(float(err[k]), 4),
+                     "T_world_obj": _mat(T_world_obj[k])}
+            if len(merged) > 1:
+                entry["merged_object_ids"] = [int(objs[m]["object_id"]) for m in merged if m != k]
+            objects_out.append(entry)
+        T_world_obj = T_world_obj[keep]
+        stats.update({
+            "iterations": int(res.iterations), "converged": bool(res.converged),
+            "initial_cost_px2": float(res.initial_cost), "final_cost_px2": float(res.final_cost),
+            "reprojection_error_px": {str(v): {"initial": _num(res.initial_view_error_px[k]),
+                                               "final": _num(res.view_error_px[k])} for k, v in enumerate(views)},
+            "n_merged_objects": int((~keep & (into >= 0)).sum()),
+            "n_dropped_overlapping_objects": int((into < 0).sum()),
+        })
+    dt = time.perf_counter() - t0
+    stats["time_s"] = round(dt, 6)
+    # predictions: every kept object in every placed camera
+    pred = []
+    if len(objects_out):
+        T_cam_obj = ba.predictions_from_scene(Twc, T_world_obj)  # (V, N', 4, 4)
+        for k, v in enumerate(views):
+            for j, o in enumerate(objects_out):
+                pred.append((s, v, o["obj_id"], o["score"], T_cam_obj[k, j]))
+    return {
+        "scene_id": s, "group_id": int(g["group_id"]), "gauge_im_id": gauge,
+        "cameras": [{"im_id": int(v), "T_world_cam": _mat(Twc[k])} for k, v in enumerate(views)],
+        "unplaced_im_ids": [int(v) for v in unplaced], "objects": objects_out, "stats": stats,
+        "_pred": pred, "_unused": sorted(set(unused)), "_time": dt,
+    }
+
+
+def _mat(T: np.ndarray) -> list:
+    return [[float(f"{v:.10g}") for v in row] for row in np.asarray(T)]
+
+
+def _num(x: float):
+    return None if not np.isfinite(x) else round(float(x), 4)
+
+
+# --------------------------------------------------------------------------------------------
+# the stage
+# --------------------------------------------------------------------------------------------
+
+def is_complete(out: str | Path) -> bool:
+    out = Path(out)
+    return out.is_dir() and all((out / f).is_file() for f in OUTPUT_FILES)
+
+
+def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, matches: str | Path) -> list[str]:
+    """Why a complete ``out`` does not correspond to these inputs and settings (empty: it does)."""
+    from .match_stage import file_sha1
+
+    try:
+        doc = json.loads((Path(out) / "scene.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return ["scene.json unreadable"]
+    reasons = []
+    old = doc.get("conf") or {}
+    changed = sorted(k for k in set(conf) | set(old) if old.get(k) != conf.get(k))
+    if changed:
+        reasons.append(f"settings changed ({', '.join(changed)})")
+    if doc.get("dataset") != str(Path(dataset).resolve()) or doc.get("split") != split:
+        reasons.append("another dataset or split")
+    g = Path(matches) / "groups.json"
+    if doc.get("matches") != str(Path(matches).resolve()) or (g.is_file() and doc.get("groups_sha1") != file_sha1(g)):
+        reasons.append("the match output changed")
+    return reasons
+
+
+def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path, out: str | Path,
+         overwrite: bool = False, *, log=print, progress: bool = True) -> dict | None:
+    """Run ``cosy refine``; returns the summary (None when skipped because ``out`` is up to date)."""
+    from threadpoolctl import threadpool_limits
+
+    from .match_stage import file_sha1
+
+    t_start = time.perf_counter()
+    conf = resolve_conf(conf)
+    out = Path(out)
+    if out.exists() and not overwrite:
+        if is_complete(out):
+            reasons = stale_reasons(out, conf, dataset, split, matches)
+            if reasons:
+                raise CosyError(f"exists but was made from other inputs: {'; '.join(reasons)} "
+                                "(use --overwrite to recompute)", path=out)
+            log(f"refine: {out} exists and is up to date, skipping (use --overwrite to recompute)")
+            return None
+        raise CosyError("exists but is not a complete refine output (use --overwrite to replace it)", path=out)
+    ds = BopDataset(dataset, split)
+    doc, cands = read_match_dir(matches)
+    gpath = Path(matches) / "groups.json"
+    if doc["split"] != split:
+        raise CosyError(f"was made for split {doc['split']!r}, not {split!r}", path=gpath)
+    if doc["dataset"] != str(Path(dataset).resolve()):
+        raise CosyError(f"was made from the dataset {doc['dataset']}, not {Path(dataset).resolve()}", path=gpath)
+    known = bool(doc["known_cameras"])
+    infos = ds.models_info()
+    used = sorted({int(o["obj_id"]) for g in doc["groups"] for o in g["objects"]})
+    bad = [o for o in used if o not in infos]
+    if bad:
+        raise CosyError(f"object {bad[0]} of {gpath} is not in the dataset's models", path=ds.models_info_path)
+    geometry = {o: label_geometry(ds, o, conf["n_points"], conf["symmetry_steps"]) for o in used}
+
+    groups = doc["groups"]
+    bar = None
+    if progress and len(groups) > 50:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(groups), desc="refine", unit="group", leave=False, disable=None)
+    results = []
+    with threadpool_limits(1):
+        for g in groups:
+            results.append(refine_group(g, cands, ds, geometry, conf, known))
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+
+    # predictions (+ unmatched candidates)
+    rows = []
+    tab = cands.table
+    for r in results:
+        for (s, v, o, sc, T) in r["_pred"]:
+            rows.append((s, v, o, sc, T, r["_time"]))
+    n_refined = len(rows)
+    n_unmatched = 0
+    if conf["keep_unmatched"]:
+        for r in results:
+            pred_c = {}
+            for (s, v, o, _, T) in r["_pred"]:
+                pred_c.setdefault((v, o), []).append(T[:3, 3])
+            for c in r["_unused"]:
+                v, o = int(tab["im_id"].iat[c]), int(tab["obj_id"].iat[c])
+                T = cands.T_cam_obj[c]
+                near = pred_c.get((v, o))
+                dedup = conf["unmatched_dedup_mm"]
+                if near is not None and np.linalg.norm(np.array(near) - T[:3, 3], axis=1).min() < dedup:
+                    continue
+                rows.append((r["scene_id"], v, o, float(tab["score"].iat[c]) * conf["unmatched_score_factor"], T,
+                             r["_time"]))
+                n_unmatched += 1
+    rows.sort(key=lambda x: (x[0], x[1], -x[3], x[2]))
+    if rows:
+        preds = bop.PoseResults.from_arrays([x[0] for x in rows], [x[1] for x in rows], [x[2] for x in rows],
+                                            [x[3] for x in rows], np.stack([x[4] for x in rows]),
+                                            [x[5] for x in rows])
+    else:
+        preds = bop.PoseResults.empty()
+
+    times = np.array([r["_time"] for r in results]) if results else np.zeros(0)
+    n_views = sum(len(g["im_ids"]) for g in groups)
+    n_placed = sum(len(r["cameras"]) for r in results)
+    finals = [v["final"] for r in results for v in r["stats"].get("reprojection_error_px", {}).values()
+              if v["final"] is not None]
+    summary = {
+        "groups": len(results), "objects": int(sum(len(r["objects"]) for r in results)),
+        "views": int(n_views), "views_placed": int(n_placed),
+        "predictions": len(preds), "refined_predictions": n_refined, "unmatched_predictions": n_unmatched,
+        "median_reprojection_error_px": float(np.median(finals)) if finals else None,
+        "not_converged": int(sum(not r["stats"]["converged"] for r in results)),
+        "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
+        "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
+    }
+    out_doc = {
+        "format": "cosy-refine", "version": FORMAT_VERSION, "cosy_version": __version__, "conf": conf,
+        "dataset": str(Path(dataset).resolve()), "split": split, "matches": str(Path(matches).resolve()),
+        "groups_sha1": file_sha1(gpath), "known_cameras": known,
+        "world_frame": "dataset world (known cameras)" if known else "gauge camera (gauge_im_id) of each group",
+        "units": {"T": "mm, T_world_cam maps camera points into the world, T_world_obj model points",
+                  "cost": "px^2", "reprojection_error": "px"},
+        "summary": summary,
+        "groups": [{k: v for k, v in r.items() if not k.startswith("_")} for r in results],
+    }
+    with atomic.atomic_dir(out, overwrite=overwrite) as tmp:
+        (tmp / "scene.json").write_text(json.dumps(out_doc, separators=(",", ":")) + "\n")
+        (tmp / "predictions.csv").write_text(bop.format_results(preds))
+    med = summary["median_reprojection_error_px"]
+    log(f"refine: {summary['groups']} groups, {summary['views_placed']}/{summary['views']} views placed, "
+        f"{summary['objects']} objects, {summary['predictions']} predictions"
+        + (f" ({n_unmatched} unmatched candidates kept)" if conf["keep_unmatched"] else "")
+        + (f"; median reprojection error {med:.2f} px" if med is not None else "")
+        + f"; {summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "
+        f"total {time.perf_counter() - t_start:.2f} s -> {out}")
+    return summary
