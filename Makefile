@@ -42,6 +42,7 @@ demo: $(VENV)/.installed
 	$(COSY) synth-candidates --dataset data_samples --split test --out $(DEMO_OUT)/candidates.csv --seed 0 \
 	  --gt-out $(DEMO_OUT)/candidates_gt.csv
 	$(COSY) match --dataset data_samples --split test --candidates $(DEMO_OUT)/candidates.csv --out $(DEMO_OUT)/match
+	$(COSY) refine --dataset data_samples --split test --matches $(DEMO_OUT)/match --out $(DEMO_OUT)/refine
 	@echo "demo outputs in $(DEMO_OUT)/"
 
 test: $(VENV)/.installed
