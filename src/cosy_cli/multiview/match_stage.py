@@ -38,7 +38,8 @@ import numpy as np
 
 from .. import __version__
 from ..errors import CosyError
-from ..io import atomic, bop
+from ..io import atomic, bop, cache
+from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from .matching import LabelTable, MatchParams, farthest_point_subset, match_groups
@@ -108,16 +109,6 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     return base
 
 
-def file_sha1(path: str | Path) -> str:
-    import hashlib
-
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, candidates_csv: str | Path) -> list[str]:
     """Why a complete ``out`` does not correspond to these inputs and settings (empty: it does)."""
     try:
@@ -137,8 +128,7 @@ def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, candid
 
 
 def is_complete(out: str | Path) -> bool:
-    out = Path(out)
-    return out.is_dir() and all((out / f).is_file() for f in OUTPUT_FILES)
+    return cache.is_complete(out, OUTPUT_FILES)
 
 
 # --------------------------------------------------------------------------------------------
@@ -497,15 +487,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
     t_start = time.perf_counter()
     conf = resolve_conf(conf)
     out = Path(out)
-    if out.exists() and not overwrite:
-        if is_complete(out):
-            reasons = stale_reasons(out, conf, dataset, split, candidates_csv)
-            if reasons:
-                raise CosyError(f"exists but was made from other inputs: {'; '.join(reasons)} "
-                                "(use --overwrite to recompute)", path=out)
-            log(f"match: {out} exists and is up to date, skipping (use --overwrite to recompute)")
-            return None
-        raise CosyError("exists but is not a complete match output (use --overwrite to replace it)", path=out)
+    if reuse_existing_output(out, "match", OUTPUT_FILES, overwrite,
+                             lambda: stale_reasons(out, conf, dataset, split, candidates_csv), log):
+        return None
     csv_path = Path(candidates_csv)
     ds = BopDataset(dataset, split)
     cands = bop.read_results(csv_path)

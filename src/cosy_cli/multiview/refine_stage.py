@@ -41,7 +41,8 @@ import numpy as np
 from .. import __version__
 from ..errors import CosyError
 from ..geometry.poses import invert
-from ..io import atomic, bop
+from ..io import atomic, bop, cache
+from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from . import bundle_adjustment as ba
@@ -302,13 +303,11 @@ def _num(x: float):
 # --------------------------------------------------------------------------------------------
 
 def is_complete(out: str | Path) -> bool:
-    out = Path(out)
-    return out.is_dir() and all((out / f).is_file() for f in OUTPUT_FILES)
+    return cache.is_complete(out, OUTPUT_FILES)
 
 
 def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, matches: str | Path) -> list[str]:
     """Why a complete ``out`` does not correspond to these inputs and settings (empty: it does)."""
-    from .match_stage import file_sha1
 
     try:
         doc = json.loads((Path(out) / "scene.json").read_text())
@@ -332,20 +331,13 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     """Run ``cosy refine``; returns the summary (None when skipped because ``out`` is up to date)."""
     from threadpoolctl import threadpool_limits
 
-    from .match_stage import file_sha1
 
     t_start = time.perf_counter()
     conf = resolve_conf(conf)
     out = Path(out)
-    if out.exists() and not overwrite:
-        if is_complete(out):
-            reasons = stale_reasons(out, conf, dataset, split, matches)
-            if reasons:
-                raise CosyError(f"exists but was made from other inputs: {'; '.join(reasons)} "
-                                "(use --overwrite to recompute)", path=out)
-            log(f"refine: {out} exists and is up to date, skipping (use --overwrite to recompute)")
-            return None
-        raise CosyError("exists but is not a complete refine output (use --overwrite to replace it)", path=out)
+    if reuse_existing_output(out, "refine", OUTPUT_FILES, overwrite,
+                             lambda: stale_reasons(out, conf, dataset, split, matches), log):
+        return None
     ds = BopDataset(dataset, split)
     doc, cands = read_match_dir(matches)
     gpath = Path(matches) / "groups.json"
