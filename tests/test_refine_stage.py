@@ -198,3 +198,45 @@ def test_overlapping_objects_of_lookalike_labels_are_suppressed():
     assert keep.tolist() == [False, True, True, False] and into.tolist() == [-1, 1, 2, -1]
     keep, into = _nms(T, obj_ids, n_c, score, 10.0, diam, 0.0)  # same-label 3D NMS only: a merge
     assert keep.tolist() == [True, True, True, False] and into.tolist() == [0, 1, 2, 2]
+
+
+def test_foreign_or_edited_match_dir_and_unconnected_views(tables, tmp_path):
+    """A foreign groups.json or an unknown obj_id: one line, exit 2, nothing written. A view
+    that cannot be connected to the others is reported as unplaced, not guessed."""
+    import shutil
+
+    csv = _cands(tables, tmp_path, "clean")
+    m = _match(tables, csv, tmp_path / "m")
+    runner = CliRunner()
+
+    def refine(mdir, out):
+        return runner.invoke(cli, ["refine", "--dataset", str(tables), "--matches", str(mdir), "--out", str(out)])
+
+    cases = {"foreign": ("format", "something-else", "expected format 'cosy-match'"),
+             "unknown_obj": ("obj_id", 99, "object 99")}
+    for name, (key, value, message) in cases.items():
+        d = tmp_path / name
+        shutil.copytree(m, d)
+        doc = json.loads((d / "groups.json").read_text())
+        if key == "format":
+            doc["format"] = value
+        else:
+            doc["groups"][0]["objects"][0]["obj_id"] = value
+        (d / "groups.json").write_text(json.dumps(doc))
+        r = refine(d, tmp_path / f"out_{name}")
+        assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output, r.output
+        assert not (tmp_path / f"out_{name}").exists()
+    d = tmp_path / "cut"
+    shutil.copytree(m, d)
+    doc = json.loads((d / "groups.json").read_text())
+    g = doc["groups"][0]
+    lonely = g["im_ids"][-1]
+    for vp in g["view_pairs"]:
+        if lonely in (vp["im_id_a"], vp["im_id_b"]):
+            vp["linked"], vp["n_inliers"] = False, 0
+    (d / "groups.json").write_text(json.dumps(doc))
+    r = refine(d, tmp_path / "out_cut")
+    assert r.exit_code == 0, r.output
+    scene = json.loads((tmp_path / "out_cut" / "scene.json").read_text())
+    assert scene["groups"][0]["unplaced_im_ids"] == [lonely]
+    assert lonely not in [c["im_id"] for c in scene["groups"][0]["cameras"]]
