@@ -43,6 +43,10 @@ demo: $(VENV)/.installed
 	  --gt-out $(DEMO_OUT)/candidates_gt.csv
 	$(COSY) match --dataset data_samples --split test --candidates $(DEMO_OUT)/candidates.csv --out $(DEMO_OUT)/match
 	$(COSY) refine --dataset data_samples --split test --matches $(DEMO_OUT)/match --out $(DEMO_OUT)/refine
+	$(COSY) evaluate --dataset data_samples --split test --predictions $(DEMO_OUT)/candidates.csv \
+	  --out $(DEMO_OUT)/eval_single_view
+	$(COSY) evaluate --dataset data_samples --split test --predictions $(DEMO_OUT)/refine/predictions.csv \
+	  --scene-json $(DEMO_OUT)/refine/scene.json --out $(DEMO_OUT)/eval_multi_view
 	@echo "demo outputs in $(DEMO_OUT)/"
 
 test: $(VENV)/.installed
