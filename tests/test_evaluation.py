@@ -655,3 +655,17 @@ def test_vivo_against_loops(dataset, tmp_path):
                 for (sc, im), gs in valid.items() for g in gs if SCENES[sc][1][im][g][0] == o]
         aucs.append(protocols.auc_posecnn(np.array(errs) / 1000))
     assert s["vivo_auc_adds"] == pytest.approx(np.nanmean(aucs))
+
+
+def test_scene_level_targets_for_the_multiview_task():
+    """ViVo targets: every object of the scene in every image, with its instance count in the
+    scene, including images where it is not annotated or not visible."""
+    import pandas as pd
+
+    from cosy_cli.evaluation import protocols
+
+    gt = pd.DataFrame({"scene_id": [1, 1, 1, 1, 2], "im_id": [0, 0, 0, 3, 5], "gt_index": [0, 1, 2, 0, 0],
+                       "obj_id": [4, 4, 7, 7, 4]})
+    images = pd.DataFrame({"scene_id": [1, 1, 2], "im_id": [0, 3, 5]})
+    t = protocols.scene_level_targets(gt, images)
+    assert t.values.tolist() == [[1, 0, 4, 2], [1, 0, 7, 1], [1, 3, 4, 2], [1, 3, 7, 1], [2, 5, 4, 1]]

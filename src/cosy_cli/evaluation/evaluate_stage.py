@@ -460,6 +460,14 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         scores.update({k: v[k] for k in ("vivo_auc_adds", "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d")})
         scores["vivo"] = {"protocol": "CosyPose T-LESS ViVo meters (per-image BOP19 targets, ADD-S)",
                           "counts": v["counts"], "per_object": v["per_object"]}
+        # the multi-view task: every object of the scene is a target in every image of it
+        tgt_scene = protocols.scene_level_targets(gt, tgt[["scene_id", "im_id"]])
+        vs = protocols.vivo_scores(gt, tgt_scene, est, table, {o: db[o].diameter for o in db.obj_ids})
+        scores.update({f"{k}_scene_targets": vs[k]
+                       for k in ("vivo_auc_adds", "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d")})
+        scores["vivo_scene_targets"] = {
+            "protocol": "ViVo with multi-view targets: each object of the scene in every target image of it "
+                        "(inst_count = its instances in the scene), visible or not", "counts": vs["counts"]}
     per_object: dict = {}
     for part in ("bop19", "auc", "vivo"):
         for o, v in scores.get(part, {}).get("per_object", {}).items():
@@ -495,7 +503,8 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         atomic.write_json(tmp / "scores.json", _clean(scores))
     for k in ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
               "bop19_average_recall_mspd", "auc_adds", "auc_add_or_adds", "recall_adds_0.1d", "vivo_auc_adds",
-              "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d"):
+              "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d", "vivo_auc_adds_scene_targets",
+              "vivo_recall_adds_0.1d_scene_targets", "vivo_map_adds_0.1d_scene_targets"):
         if k in scores:
             v = scores[k]
             log(f"  {k}: {'n/a' if v is None or (isinstance(v, float) and not math.isfinite(v)) else f'{v:.4f}'}")

@@ -393,6 +393,21 @@ def average_precision(tp: np.ndarray, score: np.ndarray, n_gt: int) -> float:
     return float(np.sum(np.diff(np.r_[0.0, rec]) * prec))
 
 
+def scene_level_targets(gt: pd.DataFrame, images: pd.DataFrame) -> pd.DataFrame:
+    """Multi-view targets (the paper's ViVo task): in every image of a scene, each object of the
+    scene is a target with ``inst_count`` = its number of instances in the scene (the most in any
+    one image's GT), whether or not it is visible in that image.
+
+    gt: scene_id, im_id, gt_index, obj_id (one row per GT instance); images: scene_id, im_id of
+    the images to evaluate. Returns scene_id, im_id, obj_id, inst_count.
+    """
+    per_image = gt.groupby(["scene_id", "im_id", "obj_id"]).size().rename("n").reset_index()
+    k = per_image.groupby(["scene_id", "obj_id"])["n"].max().rename("inst_count").reset_index()
+    out = images[["scene_id", "im_id"]].drop_duplicates().merge(k, on="scene_id", how="inner")
+    return out[["scene_id", "im_id", "obj_id", "inst_count"]].sort_values(["scene_id", "im_id", "obj_id"]) \
+        .reset_index(drop=True).astype(np.int64)
+
+
 def vivo_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, errors: pd.DataFrame,
                 diameters: dict[int, float]) -> dict:
     """CosyPose's T-LESS ViVo meters (``run_cosypose_eval.py``, ``tless.primesense.test.bop19``:
