@@ -357,16 +357,32 @@ class SceneRenderer:
 
     def render_crops(self, K_crops, obj_ids: Sequence[int], T_cam_obj, size: tuple[int, int], *, colors=None,
                      light_dir=None, light_intensity=None, ambient: float = 0.3,
-                     with_rgb: bool = True) -> RenderOutput:
+                     with_rgb: bool = True, tiles=None) -> RenderOutput:
         """B images of ``size`` = (w, h), image b showing only instance b: K_crops (B, 3, 3)
         (e.g. from :func:`cosy_cli.geometry.crop_intrinsics`), obj_ids (B,), T_cam_obj (B, 4, 4) mm.
         Returns rgb (B, h, w, 3), depth (B, h, w), instance (B, h, w) (= b on the object, -1 elsewhere).
-        Lighting and colours as in :meth:`render` (colors: (B, 3))."""
+        Lighting and colours as in :meth:`render` (colors: (B, 3)).
+
+        tiles: optional (n,) non-decreasing image index of each of n instances, to draw several
+        instances (with occlusion) into one image: then K_crops has one row per image (at least
+        max(tiles) + 1; images without instances come out empty) and ``instance`` holds the index
+        i into ``obj_ids`` of the visible instance."""
         w, h = self._size(size)
         ids, T = self._check_instances(obj_ids, T_cam_obj)
         n = len(ids)
-        K = self._check_K(K_crops, n)
-        return self._render_tiles(n, K, w, h, ids, T, np.arange(n), np.arange(n), self._check_colors(colors, n),
+        if tiles is None:
+            tile_of, n_tiles = np.arange(n), n
+        else:
+            tile_of = np.asarray(tiles, dtype=np.int64).reshape(-1)
+            if tile_of.shape != (n,) or (n and (tile_of[0] < 0 or np.any(np.diff(tile_of) < 0))):
+                raise ValueError(f"tiles must be ({n},) non-decreasing indices >= 0")
+            n_tiles = int(tile_of[-1]) + 1 if n else 0
+            if len(np.asarray(K_crops).reshape(-1, 3, 3)) != n_tiles:
+                n_tiles = len(np.asarray(K_crops).reshape(-1, 3, 3))
+                if n and tile_of[-1] >= n_tiles:
+                    raise ValueError(f"tiles reach image {tile_of[-1]} but K_crops has {n_tiles} rows")
+        K = self._check_K(K_crops, n_tiles)
+        return self._render_tiles(n_tiles, K, w, h, ids, T, tile_of, np.arange(n), self._check_colors(colors, n),
                                   self._lighting(light_dir, light_intensity, ambient), with_rgb=with_rgb)
 
     def close(self) -> None:
