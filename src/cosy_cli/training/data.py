@@ -52,12 +52,9 @@ from ..geometry.poses import look_at, make_pose, transform_points
 from ..geometry.rotations import axis_angle_to_matrix, random_rotations, rotation_about_axis
 from ..objects.database import diameter_of
 
-# The coarse model's fixed input orientation: the object seen from 30 deg above its xy-plane,
-# from its -y side, its z axis pointing up in the image.
-_e = math.radians(30.0)
-CANONICAL_ROTATION = look_at(np.array([0.0, -math.cos(_e), math.sin(_e)]), np.zeros(3),
-                             up=(0.0, 0.0, 1.0))[:3, :3].T.copy()  # R_cam_obj
-DEFAULT_COARSE_DISTANCE_MM = 1000.0
+from ..singleview.crops import CANONICAL_DEPTH_MM, CANONICAL_ROTATION  # one definition: train and test agree
+
+DEFAULT_COARSE_DISTANCE_MM = CANONICAL_DEPTH_MM
 VARIANT_ID_OFFSET = 1_000_000  # renderer ids of the vertex-colour-noise copies of the meshes
 NEUTRAL_COLOR = (0.7, 0.7, 0.7)
 
