@@ -7,13 +7,11 @@ from pathlib import Path
 
 import click
 
-from .common import user_errors
+from .common import dataset_options, user_errors
 
 
 @click.command("evaluate")
-@click.option("--dataset", required=True, type=click.Path(path_type=Path),
-              help="BOP dataset folder with ground truth (scene_gt.json, scene_gt_info.json, depth/ for VSD).")
-@click.option("--split", default="test", show_default=True, help="Split folder (test, val...).")
+@dataset_options("BOP dataset folder with ground truth (scene_gt.json, scene_gt_info.json, depth/ for VSD).")
 @click.option("--predictions", required=True, type=click.Path(path_type=Path),
               help="Predictions CSV (BOP results: scene_id,im_id,obj_id,score,R,t,time; pose in the camera, mm).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),

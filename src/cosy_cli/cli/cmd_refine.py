@@ -10,13 +10,11 @@ from pathlib import Path
 
 import click
 
-from .common import user_errors
+from .common import dataset_options, user_errors
 
 
 @click.command("refine")
-@click.option("--dataset", required=True, type=click.Path(path_type=Path),
-              help="BOP dataset folder (scene_camera.json per scene, models/ with models_info.json).")
-@click.option("--split", default="test", show_default=True, help="Split folder (test, val...).")
+@dataset_options("BOP dataset folder (scene_camera.json per scene, models/ with models_info.json).")
 @click.option("--matches", required=True, type=click.Path(path_type=Path),
               help="Output folder of cosy match (groups.json, candidates.csv...).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),

@@ -13,6 +13,17 @@ from ..errors import CosyError, DatasetProblems
 USER_ERROR_EXIT = 2
 
 
+def dataset_options(dataset_help: str):
+    """The ``--dataset DIR`` and ``--split NAME`` options every dataset-reading stage takes."""
+    from pathlib import Path
+
+    def decorate(fn):
+        fn = click.option("--split", default="test", show_default=True, help="Split folder (test, val...).")(fn)
+        return click.option("--dataset", required=True, type=click.Path(path_type=Path), help=dataset_help)(fn)
+
+    return decorate
+
+
 def setup_runtime() -> None:
     """Environment that must be set before numpy/torch/OpenGL are imported by a command."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
