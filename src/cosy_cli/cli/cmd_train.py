@@ -1,0 +1,83 @@
+"""``cosy train {coarse,refiner}`` and ``cosy export``: train a render-and-compare network on
+on-the-fly renders of a dataset's objects, and export it to ONNX with a model card.
+
+Imports stay light: the training module is imported when the command runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from .common import user_errors
+
+BACKBONES = [f"efficientnet-b{i}" for i in range(4)]
+
+
+def _crop(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        w, h = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"expected WIDTHxHEIGHT such as 128x96, got {value!r}") from None
+    return [w, h]
+
+
+@click.command("train")
+@click.argument("kind", type=click.Choice(["coarse", "refiner"]))
+@click.option("--dataset", required=True, type=click.Path(path_type=Path),
+              help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered.")
+@click.option("--split", default="train_pbr", show_default=True,
+              help="Split the run is recorded for (training uses on-the-fly renders, not the split's images).")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Run folder: checkpoint.pt, config.json, log.csv, loss.png.")
+@click.option("--backbone", type=click.Choice(BACKBONES), default=None, help="EfficientNet backbone [efficientnet-b0].")
+@click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96].")
+@click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32].")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Adam learning rate [3e-4].")
+@click.option("--warmup", type=click.IntRange(min=0), default=None, help="Linear warm-up steps [500].")
+@click.option("--schedule", type=click.Choice(["constant", "cosine"]), default=None,
+              help="LR after warm-up [constant].")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default=None,
+              help="cuda if available (falls back to the CPU with a warning) [cpu].")
+@click.option("--workers", type=click.IntRange(min=0), default=None,
+              help="Rendering worker processes (0: render in the training process) [0].")
+@click.option("--seed", type=int, default=None, help="Seed of weights and data [0].")
+@click.option("--checkpoint-every", type=click.IntRange(min=1), default=None, help="Steps between checkpoints [200].")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its checkpoint (same settings).")
+@click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@user_errors
+def train(kind, dataset, split, out, backbone, crop, iterations, batch_size, lr, warmup, schedule, device, workers,
+          seed, checkpoint_every, resume, overwrite, quiet) -> None:
+    """Train the KIND (coarse or refiner) PoseNet on domain-randomised renders of the dataset's objects.
+
+    Disentangled symmetric loss (mm), Adam with warm-up; the refiner's input-pose noise follows a
+    curriculum from 0.3 to 1.0 of its full size over the first half of --iterations. Resumable:
+    Ctrl-C saves a checkpoint; --resume continues (with a larger --iterations to train longer).
+    """
+    from ..training import train as train_mod
+
+    conf = train_mod.resolve_conf(None, kind=kind, backbone=backbone, crop_size=crop, iterations=iterations,
+                                  batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule, device=device,
+                                  workers=workers, seed=seed, checkpoint_every=checkpoint_every)
+    train_mod.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo, progress=not quiet)
+
+
+@click.command("export")
+@click.option("--run", required=True, type=click.Path(path_type=Path), help="Run folder of cosy train.")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="ONNX file to write; the model card goes next to it (same name, .md).")
+@click.option("--accuracy", default=None, help="Measured accuracy line for the model card [not measured].")
+@user_errors
+def export(run, out, accuracy) -> None:
+    """Export a trained run's network to ONNX (dynamic batch) and write its model card."""
+    from ..training import train as train_mod
+
+    train_mod.export(run, out, accuracy=accuracy, log=click.echo)
+
+
+COMMANDS = [train, export]
