@@ -30,7 +30,6 @@ Output folder (built atomically):
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -41,7 +40,7 @@ import pandas as pd
 
 from .. import __version__
 from ..errors import CosyError
-from ..io import atomic, bop, images
+from ..io import atomic, bop, cache, images
 from ..io.dataset import BopDataset
 from . import pose_error, protocols
 
@@ -94,17 +93,22 @@ def parse_metrics(metrics) -> list[str]:
 
 
 def _sha1(path: Path | None) -> str | None:
-    if path is None or not Path(path).is_file():
-        return None
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return None if path is None or not Path(path).is_file() else cache.file_sha1(path)
 
 
 def is_complete(out: Path) -> bool:
-    return out.is_dir() and all((out / f).is_file() for f in OUTPUT_FILES)
+    return cache.is_complete(out, OUTPUT_FILES)
+
+
+def _stale_reasons(out: Path, inputs: dict) -> list[str]:
+    """What differs between the inputs recorded in ``out/scores.json`` and ``inputs``."""
+    try:
+        old = json.loads((out / "scores.json").read_text()).get("inputs") or {}
+    except (OSError, json.JSONDecodeError):
+        return ["scores.json unreadable"]
+    new = json.loads(json.dumps(inputs))
+    changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    return [f"inputs or settings changed ({', '.join(changed)})"] if changed else []
 
 
 # --------------------------------------------------------------------------------------------
@@ -368,17 +372,8 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
               "scene_json": None if scene_json is None else str(Path(scene_json).resolve()),
               "scene_json_sha1": _sha1(scene_json), "models_dir": None if models_dir is None else str(models_dir),
               "metrics": metrics, "conf": conf}
-    if out.exists() and not overwrite:
-        if is_complete(out):
-            try:
-                old = json.loads((out / "scores.json").read_text()).get("inputs")
-            except (OSError, json.JSONDecodeError):
-                old = None
-            if old == json.loads(json.dumps(inputs)):
-                log(f"evaluate: {out} exists and is up to date, skipping (use --overwrite to recompute)")
-                return None
-            raise CosyError("exists but was made from other inputs or settings (use --overwrite to recompute)", path=out)
-        raise CosyError("exists but is not a complete evaluation output (use --overwrite to replace it)", path=out)
+    if cache.reuse_existing_output(out, "evaluate", OUTPUT_FILES, overwrite, lambda: _stale_reasons(out, inputs), log):
+        return None
 
     warnings: list[str] = []
 

@@ -69,6 +69,7 @@ from typing import Hashable, Mapping, Sequence
 import numpy as np
 
 from ..geometry.poses import invert
+from ..geometry.sampling import farthest_point_subset
 
 DEFAULT_N_POINTS = 64  # model points per label in the residuals
 DEFAULT_LOSS_THRESHOLD_PX = 25.0  # truncation of the per-point reprojection error (px)
@@ -82,22 +83,7 @@ DEFAULT_SHORTLIST = 4  # symmetries per candidate given the exact 2D cost at eac
 # Object geometry
 # --------------------------------------------------------------------------------------------
 
-def farthest_point_sample(points: np.ndarray, n: int) -> np.ndarray:
-    """``n`` of ``points`` (P, 3) spread over the object by farthest-point sampling.
-
-    Deterministic: starts at the point farthest from the centroid. Returns all points when
-    P <= n.
-    """
-    P = np.asarray(points, dtype=np.float64)
-    if len(P) <= n:
-        return P.copy()
-    idx = np.empty(n, dtype=np.int64)
-    idx[0] = int(np.argmax(np.sum((P - P.mean(0)) ** 2, axis=1)))
-    d = np.sum((P - P[idx[0]]) ** 2, axis=1)
-    for i in range(1, n):  # n iterations over vector ops (once per label, not a hot path)
-        idx[i] = int(np.argmax(d))
-        d = np.minimum(d, np.sum((P - P[idx[i]]) ** 2, axis=1))
-    return P[idx]
+farthest_point_sample = farthest_point_subset  # n of the points, spread over the object
 
 
 @dataclass(frozen=True)

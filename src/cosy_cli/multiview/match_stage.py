@@ -42,7 +42,8 @@ from ..io import atomic, bop, cache
 from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
-from .matching import LabelTable, MatchParams, farthest_point_subset, match_groups
+from ..geometry.sampling import farthest_point_subset
+from .matching import LabelTable, MatchParams, match_groups
 
 FORMAT_VERSION = 1
 BATCH_CANDIDATES = 2000  # groups are matched together until a batch holds this many candidates

@@ -101,6 +101,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.poses import invert
+from ..geometry.sampling import farthest_point_indices
 
 
 # --------------------------------------------------------------------------------------------
@@ -162,7 +163,7 @@ class LabelTable:
         C = np.empty((L, nc, 3))
         W = np.empty((L, nc))
         for l in range(L):
-            seeds = _farthest_points(X[l], nc)
+            seeds = farthest_point_indices(X[l], nc)
             assign = np.argmin(np.linalg.norm(X[l][:, None] - X[l][seeds][None], axis=-1), axis=1)
             for k in range(nc):
                 C[l, k] = X[l][assign == k].mean(axis=0)
@@ -243,27 +244,6 @@ def _axis_steps(S: np.ndarray, a: np.ndarray, o: np.ndarray, sgn: np.ndarray):
             idx[k] = m
         parts.append((F, idx))
     return e1, e2, parts
-
-
-def _farthest_points(X: np.ndarray, k: int) -> np.ndarray:
-    """Indices of k well-spread points of X (N, 3): farthest-point sampling from the point
-    farthest from the centroid (deterministic)."""
-    d = np.linalg.norm(X - X.mean(0), axis=1)
-    idx = [int(np.argmax(d))]
-    dist = np.linalg.norm(X - X[idx[0]], axis=1)
-    for _ in range(1, k):
-        i = int(np.argmax(dist))
-        idx.append(i)
-        dist = np.minimum(dist, np.linalg.norm(X - X[i], axis=1))
-    return np.array(idx)
-
-
-def farthest_point_subset(X: np.ndarray, k: int) -> np.ndarray:
-    """k well-spread points of X (N, 3) (farthest-point sampling; all of X when N <= k)."""
-    X = np.asarray(X, dtype=np.float64)
-    if len(X) <= k:
-        return X.copy()
-    return X[_farthest_points(X, k)]
 
 
 # --------------------------------------------------------------------------------------------

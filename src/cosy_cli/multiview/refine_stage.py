@@ -210,7 +210,6 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     vidx = {v: k for k, v in enumerate(views)}
     tab = cands.table
     c_im = tab["im_id"].to_numpy()
-    c_obj = tab["obj_id"].to_numpy()
     c_score = tab["score"].to_numpy()
 
     # candidates of objects, in placed views

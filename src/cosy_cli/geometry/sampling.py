@@ -1,0 +1,27 @@
+"""Point subsets: farthest-point sampling (numpy)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def farthest_point_indices(X: np.ndarray, k: int) -> np.ndarray:
+    """Indices (k,) of k well-spread points of X (N, 3), N >= k: farthest-point sampling started
+    at the point farthest from the centroid (deterministic)."""
+    X = np.asarray(X, dtype=np.float64)
+    d = np.linalg.norm(X - X.mean(0), axis=1)
+    idx = np.empty(k, dtype=np.int64)
+    idx[0] = int(np.argmax(d))
+    dist = np.linalg.norm(X - X[idx[0]], axis=1)
+    for i in range(1, k):  # k vector operations, once per object label (not a hot path)
+        idx[i] = int(np.argmax(dist))
+        dist = np.minimum(dist, np.linalg.norm(X - X[idx[i]], axis=1))
+    return idx
+
+
+def farthest_point_subset(X: np.ndarray, k: int) -> np.ndarray:
+    """k well-spread points of X (N, 3), a copy of all of X when N <= k."""
+    X = np.asarray(X, dtype=np.float64)
+    if len(X) <= k:
+        return X.copy()
+    return X[farthest_point_indices(X, k)]
