@@ -52,7 +52,9 @@ from ..geometry.poses import look_at, make_pose, transform_points
 from ..geometry.rotations import axis_angle_to_matrix, random_rotations, rotation_about_axis
 from ..objects.database import diameter_of
 
-from ..singleview.crops import CANONICAL_DEPTH_MM, CANONICAL_ROTATION  # one definition: train and test agree
+from ..singleview.crops import (  # one definition: train and test agree
+    CANONICAL_DEPTH_MM, CANONICAL_ROTATION, canonical_depth_from_boxes, canonical_poses,
+)
 
 DEFAULT_COARSE_DISTANCE_MM = CANONICAL_DEPTH_MM
 VARIANT_ID_OFFSET = 1_000_000  # renderer ids of the vertex-colour-noise copies of the meshes
@@ -79,33 +81,17 @@ DEFAULT_PERTURBATION = Perturbation()
 
 def canonical_pose(K: np.ndarray, box: np.ndarray, distance_mm: float = DEFAULT_COARSE_DISTANCE_MM,
                    R: np.ndarray | None = None) -> np.ndarray:
-    """The coarse model's input pose(s) (..., 4, 4) for detection boxes (..., 4).
-
-    ``box`` = (x1, y1, x2, y2) in BOP pixel-edge coordinates (pixel i spans [i, i + 1]); K
-    (..., 3, 3) and ``distance_mm`` (scalar or (...)) broadcast against it. Orientation:
-    ``R`` (3, 3), default ``CANONICAL_ROTATION`` (fixed). Translation: the object origin on the camera ray through the
-    box centre, at depth z = ``distance_mm``, so it projects exactly onto the box centre
-    (pixel-centre coords ((x1 + x2) / 2 - 0.5, ...)).
-    """
-    K = np.asarray(K, dtype=np.float64)
+    """The coarse model's input pose(s) (..., 4, 4) for boxes (..., 4) (pixel-edge x1, y1, x2, y2):
+    :func:`cosy_cli.singleview.crops.canonical_poses` keeping the boxes' leading shape."""
     box = np.asarray(box, dtype=np.float64)
-    u = (box[..., 0] + box[..., 2]) / 2 - 0.5
-    v = (box[..., 1] + box[..., 3]) / 2 - 0.5
-    y = (v - K[..., 1, 2]) / K[..., 1, 1]
-    x = (u - K[..., 0, 2] - K[..., 0, 1] * y) / K[..., 0, 0]
-    t = np.stack(np.broadcast_arrays(x, y, np.ones_like(y)), -1) * np.asarray(distance_mm, dtype=np.float64)[..., None]
-    R = np.broadcast_to(CANONICAL_ROTATION if R is None else np.asarray(R, dtype=np.float64), t.shape[:-1] + (3, 3))
-    return make_pose(R, t)
+    return canonical_poses(K, box.reshape(-1, 4), distance_mm, R).reshape(box.shape[:-1] + (4, 4))
 
 
 def depth_from_box(K: np.ndarray, box: np.ndarray, diameter_mm) -> np.ndarray:
-    """Depth (mm) at which an object of ``diameter_mm`` spans about the larger side of ``box``
-    (pixel-edge (x1, y1, x2, y2)) with intrinsics K: z = f * diameter / side. Broadcasts."""
-    K = np.asarray(K, dtype=np.float64)
+    """Depth (mm) at which an object of ``diameter_mm`` spans about the larger side of ``box``:
+    :func:`cosy_cli.singleview.crops.canonical_depth_from_boxes` keeping the boxes' leading shape."""
     box = np.asarray(box, dtype=np.float64)
-    side = np.maximum(box[..., 2] - box[..., 0], box[..., 3] - box[..., 1])
-    f = (K[..., 0, 0] + K[..., 1, 1]) / 2
-    return f * np.asarray(diameter_mm, dtype=np.float64) / np.maximum(side, 1.0)
+    return canonical_depth_from_boxes(K, box.reshape(-1, 4), diameter_mm).reshape(box.shape[:-1])
 
 
 def perturb_poses(T: np.ndarray, rng: np.random.Generator, perturbation: Perturbation = DEFAULT_PERTURBATION,
