@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
+from ..conf import merge_conf
 from ..errors import CosyError
 from ..io import atomic, bop, cache, images
 from ..io.dataset import BopDataset
@@ -59,18 +60,7 @@ CONFS: dict[str, dict] = {
 
 
 def resolve_conf(conf: str | dict | None = "bop19", **overrides) -> dict:
-    if conf is None:
-        conf = "bop19"
-    if isinstance(conf, str):
-        if conf not in CONFS:
-            raise CosyError(f"unknown configuration {conf!r} (known: {', '.join(CONFS)})")
-        base = dict(CONFS[conf])
-    else:
-        base = {**CONFS["bop19"], **dict(conf)}
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    unknown = sorted(set(base) - set(CONFS["bop19"]))
-    if unknown:
-        raise CosyError(f"unknown configuration key(s) {', '.join(unknown)} (known: {', '.join(CONFS['bop19'])})")
+    base = merge_conf(CONFS, conf, overrides, default="bop19", what="evaluate")
     if not (float(base["vsd_delta"]) > 0 and float(base["max_sym_disc_step"]) > 0):
         raise CosyError("vsd_delta and max_sym_disc_step must be > 0")
     base["vsd_delta"] = float(base["vsd_delta"])

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..conf import merge_conf
 from ..errors import CosyError
 from ..io import atomic, bop, cache
 from ..io.cache import file_sha1, reuse_existing_output
@@ -76,18 +77,7 @@ CONFS["paper-norefit"] = {**CONFS["paper"], "refit": False}  # the hypothesis of
 
 def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     """A full configuration: a named one (or a dict over ``paper``) with overrides (None ignored)."""
-    if conf is None:
-        conf = "paper"
-    if isinstance(conf, str):
-        if conf not in CONFS:
-            raise CosyError(f"unknown configuration {conf!r} (known: {', '.join(CONFS)})")
-        base = dict(CONFS[conf])
-    else:
-        base = {**CONFS["paper"], **dict(conf)}
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    unknown = sorted(set(base) - set(CONFS["paper"]))
-    if unknown:
-        raise CosyError(f"unknown configuration key(s) {', '.join(unknown)} (known: {', '.join(CONFS['paper'])})")
+    base = merge_conf(CONFS, conf, overrides, default="paper", what="match")
     checks = {
         "threshold_mm": lambda v: v > 0, "ransac_iterations": lambda v: v >= 1, "min_inliers": lambda v: v >= 1,
         "symmetry_steps": lambda v: v >= 1, "n_points": lambda v: v >= 3, "sym_candidates": lambda v: v >= 1,

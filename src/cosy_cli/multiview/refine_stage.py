@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..conf import merge_conf
 from ..errors import CosyError
 from ..geometry.poses import invert
 from ..io import atomic, bop, cache
@@ -69,12 +70,7 @@ DEFAULT_CONF = {
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     """The full configuration: defaults, then ``conf``, then overrides (None ignored), checked."""
-    base = dict(DEFAULT_CONF)
-    base.update(conf or {})
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    unknown = sorted(set(base) - set(DEFAULT_CONF))
-    if unknown:
-        raise CosyError(f"unknown refine setting(s): {', '.join(unknown)}")
+    base = merge_conf({"default": DEFAULT_CONF}, conf or {}, overrides, default="default", what="refine")
     base["iterations"] = int(base["iterations"])
     base["n_points"] = int(base["n_points"])
     base["symmetry_steps"] = int(base["symmetry_steps"])

@@ -35,6 +35,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..conf import merge_conf
 from ..errors import CosyError
 from ..io.atomic import atomic_path, write_json, write_text
 
@@ -69,12 +70,7 @@ RESUMABLE_CHANGES = {"iterations", "device", "workers", "checkpoint_every", "log
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     """Defaults, then ``conf``, then the overrides that are not None; checked."""
-    c = dict(DEFAULT_CONF)
-    c.update(conf or {})
-    c.update({k: v for k, v in overrides.items() if v is not None})
-    unknown = sorted(set(c) - set(DEFAULT_CONF))
-    if unknown:
-        raise CosyError(f"unknown training setting(s): {', '.join(unknown)}")
+    c = merge_conf({"default": DEFAULT_CONF}, conf or {}, overrides, default="default", what="training")
     if c["kind"] not in ("coarse", "refiner"):
         raise CosyError(f"kind must be coarse or refiner, not {c['kind']!r}")
     c["crop_size"] = [int(v) for v in c["crop_size"]]
