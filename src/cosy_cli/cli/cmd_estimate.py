@@ -1,0 +1,97 @@
+"""``cosy estimate``: single-view object candidates from 2D detections (CosyPose stage 1)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ..errors import CosyError
+from .common import user_errors
+
+COARSE_METHODS = ("network", "templates", "auto")
+REFINER_METHODS = ("network", "none", "auto")
+
+
+def _method_or_model(value: str | None, methods: tuple, network: str = "network"):
+    """(method, model path): a method name, or an ONNX path (which means the network method)."""
+    if value is None:
+        return None, None
+    if value in methods:
+        return value, None
+    return network, Path(value)
+
+
+def _scene_location(scene: Path) -> tuple[Path, str, int]:
+    """A BOP scene folder DATASET/SPLIT/SCENE_ID -> (dataset root, split, scene id)."""
+    scene = Path(scene)
+    if not scene.is_dir():
+        raise CosyError("scene folder not found", path=scene)
+    try:
+        sid = int(scene.name)
+    except ValueError:
+        raise CosyError("a BOP scene folder is named by its scene id (e.g. test/000001)", path=scene) from None
+    return scene.resolve().parent.parent, scene.resolve().parent.name, sid
+
+
+@click.command("estimate")
+@click.option("--scene", type=click.Path(path_type=Path), default=None,
+              help="One BOP scene folder DATASET/SPLIT/SCENE_ID (instead of --dataset/--split).")
+@click.option("--dataset", type=click.Path(path_type=Path), default=None, help="BOP dataset folder (all scenes of --split).")
+@click.option("--split", default="test", show_default=True, help="Split folder (with --dataset).")
+@click.option("--scene-id", "scene_ids", type=int, multiple=True, help="Only these scenes (repeatable; with --dataset).")
+@click.option("--models", "models_dir", type=click.Path(path_type=Path), default=None,
+              help="Models folder (obj_XXXXXX.ply in mm + models_info.json) [the dataset's models/].")
+@click.option("--detections", type=click.Path(path_type=Path), default=None,
+              help="BOP detections JSON (scene_id, image_id, category_id, score, bbox [x, y, w, h] px).")
+@click.option("--from-gt", is_flag=True, help="Use the visible GT boxes (scene_gt_info bbox_visib, visib_fract >= 0.1).")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Candidates CSV (BOP results; also OUT.timing.csv and OUT.json).")
+@click.option("--conf", default="default", show_default=True,
+              help="default (best available: see --coarse/--refiner/--depth-refine), paper (coarse + refiner "
+                   "networks, RGB only) or templates-icp (training-free).")
+@click.option("--coarse", default=None,
+              help="network | templates | auto, or a coarse ONNX model (implies network) [auto: the shipped coarse "
+                   "model if any, else templates].")
+@click.option("--refiner", default=None,
+              help="network | none | auto, or a refiner ONNX model (implies network) [auto: the shipped refiner "
+                   "if any].")
+@click.option("--depth-refine", type=click.Choice(["icp", "none", "auto"]), default=None,
+              help="Point-to-plane ICP of each candidate on the depth image [auto: icp when the split has depth].")
+@click.option("--refiner-iterations", type=click.IntRange(min=0), default=None, help="Refiner iterations [paper: 4].")
+@click.option("--top-k", type=click.IntRange(min=1), default=None,
+              help="Template hypotheses per detection, ranked by depth agreement after ICP [5].")
+@click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
+              help="Templates folder (built by `cosy templates` if missing) [OUT's folder/templates].")
+@click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Crops per network call [32].")
+@click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@user_errors
+def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
+             depth_refine, refiner_iterations, top_k, templates_dir, providers, batch_size, overwrite, quiet) -> None:
+    """Single-view 6D pose candidates for every detection (CosyPose stage 1).
+
+    Writes one row per detection (label, the detector's score, T_cam_obj with t in mm) that
+    `cosy match` reads. Skips when OUT is up to date (unless --overwrite).
+    """
+    from ..singleview import estimate_stage
+
+    if (scene is None) == (dataset is None):
+        raise CosyError("give either --scene DIR or --dataset DIR")
+    if scene is not None:
+        if scene_ids:
+            raise CosyError("--scene-id goes with --dataset, not --scene")
+        dataset, split, sid = _scene_location(scene)
+        scene_ids = [sid]
+    coarse_method, coarse_model = _method_or_model(coarse, COARSE_METHODS)
+    refiner_method, refiner_model = _method_or_model(refiner, REFINER_METHODS)
+    c = estimate_stage.resolve_conf(conf, coarse=coarse_method, refiner=refiner_method, depth_refine=depth_refine,
+                                    refiner_iterations=refiner_iterations, top_k=top_k, providers=providers,
+                                    batch_size=batch_size)
+    estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=list(scene_ids) or None,
+                        detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
+                        refiner_model=refiner_model, templates_dir=templates_dir, log=click.echo, progress=not quiet)
+
+
+COMMANDS = [estimate]

@@ -1,0 +1,466 @@
+"""``cosy estimate``: single-view object candidates (CosyPose stage 1, paper Section 3.1).
+
+For every image of the scenes, every 2D detection (a BOP detections file, or the visible GT boxes
+with ``from_gt``) becomes one object candidate: label, the detector's score and a pose T_cam_obj
+(mm) in that image's camera. The pose comes from a chain of steps, each optional:
+
+1. **coarse**: ``network`` (the paper's coarse render-and-compare model, one step from the
+   canonical pose) or ``templates`` (training-free retrieval of the top-k rendered views,
+   :mod:`~cosy_cli.singleview.templates`);
+2. with depth, ``depth_refine: icp`` first refines every coarse hypothesis against the observed
+   depth and keeps, per detection, the one that agrees best with it
+   (:mod:`~cosy_cli.singleview.icp`); without depth the best-scoring hypothesis is kept;
+3. **refiner**: ``network``, the refiner iterated ``refiner_iterations`` times (paper: 4);
+4. with depth, a last ICP pass after the refiner.
+
+``"auto"`` picks, per setting, what is available: a coarse network if one is given or shipped,
+else templates; the shipped (or given) refiner if any; ICP when the dataset has depth. The
+summary says which combination ran. Output: a BOP results CSV (scene_id, im_id, obj_id, score,
+R, t mm, time s per image) that ``cosy match`` reads, ``<out>.timing.csv`` (per image: detections
+and seconds per step) and ``<out>.json`` (settings, inputs, what ran, totals).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..conf import merge_conf
+from ..errors import CosyError
+from ..io import bop
+from ..io.atomic import atomic_path, write_json
+from ..io.cache import file_sha1
+from ..io.dataset import BopDataset
+
+ASSETS = Path(__file__).resolve().parent.parent / "assets"
+SHIPPED_COARSE = ASSETS / "coarse.onnx"
+SHIPPED_REFINER = ASSETS / "refiner.onnx"
+
+CONFS = {
+    # The most accurate combination available (see the module docstring).
+    "default": {
+        "coarse": "auto",             # network | templates | auto
+        "refiner": "auto",            # network | none | auto
+        "depth_refine": "auto",       # icp | none | auto
+        "refiner_iterations": 4,      # paper: 4 at test time
+        "top_k": 5,                   # template hypotheses per detection (kept for ICP selection)
+        "batch_size": 32,             # crops per network call
+        "providers": "cpu",           # onnxruntime: cpu | cuda
+        "min_visib_fract": 0.1,       # from_gt: boxes of instances at least this visible
+        "icp_iterations": 20,
+    },
+    # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
+    "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
+              "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 20},
+    # Training-free: templates, then ICP on depth.
+    "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
+                      "top_k": 5, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 20},
+}
+
+
+def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
+    c = merge_conf(CONFS, conf, overrides, default="default", what="estimate")
+    choices = {"coarse": ("network", "templates", "auto"), "refiner": ("network", "none", "auto"),
+               "depth_refine": ("icp", "none", "auto"), "providers": ("cpu", "cuda")}
+    for k, allowed in choices.items():
+        if c[k] not in allowed:
+            raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
+    for k in ("refiner_iterations", "top_k", "batch_size", "icp_iterations"):
+        c[k] = int(c[k])
+    c["min_visib_fract"] = float(c["min_visib_fract"])
+    if c["refiner_iterations"] < 0 or c["top_k"] < 1 or c["batch_size"] < 1 or c["icp_iterations"] < 1:
+        raise CosyError("estimate settings out of range (refiner iterations >= 0, top-k, batch size, ICP iterations >= 1)")
+    return c
+
+
+# ------------------------------------------------------------------------------------------------
+# detections
+# ------------------------------------------------------------------------------------------------
+DET_COLUMNS = ["scene_id", "im_id", "obj_id", "score", "x", "y", "w", "h"]
+
+
+def detections_from_gt(ds: BopDataset, scene_ids: list[int], min_visib_fract: float = 0.1) -> pd.DataFrame:
+    """Visible GT boxes (``bbox_visib`` of scene_gt_info.json, px) of instances with visib_fract >=
+    ``min_visib_fract``, as a detections table (score 1). Also returns the GT index (column
+    ``gt_index``) for evaluation."""
+    rows = []
+    for sid in scene_ids:
+        if not ds.has_gt(sid):
+            raise CosyError("--from-gt needs scene_gt.json and scene_gt_info.json", path=ds.scene_dir(sid))
+        gt, info = ds.scene_gt(sid), ds.scene_gt_info(sid)
+        for im_id in ds.image_ids(sid):
+            insts, infos = gt.get(im_id, []), info.get(im_id, [])
+            if len(insts) != len(infos):
+                raise CosyError(f"image {im_id}: {len(insts)} GT instances but {len(infos)} scene_gt_info entries",
+                                path=ds.scene_file(sid, "scene_gt_info"))
+            for i, (g, inf) in enumerate(zip(insts, infos)):
+                x, y, w, h = (float(v) for v in inf.bbox_visib)
+                if inf.visib_fract >= min_visib_fract and w > 0 and h > 0:
+                    rows.append((sid, im_id, g.obj_id, 1.0, x, y, w, h, i))
+    df = pd.DataFrame(rows, columns=DET_COLUMNS + ["gt_index"])
+    for c in ("scene_id", "im_id", "obj_id", "gt_index"):
+        df[c] = df[c].astype(np.int64)
+    return df
+
+
+def check_detections(dets: pd.DataFrame, ds: BopDataset, scene_ids: list[int], obj_ids: set[int], source: str,
+                     log=print) -> pd.DataFrame:
+    """Keep the detections that can be estimated; report (one line each) the skipped ones: labels
+    not in the models, images not in the scenes, boxes with no area inside the image."""
+    keep = np.ones(len(dets), bool)
+    unknown = ~dets["obj_id"].isin(sorted(obj_ids)).to_numpy()
+    if unknown.any():
+        labels = sorted(set(dets.loc[unknown, "obj_id"].tolist()))
+        log(f"estimate: skipping {int(unknown.sum())} detection(s) of {source} whose label is not in the models: "
+            f"obj_id {', '.join(map(str, labels[:10]))}{' ...' if len(labels) > 10 else ''} "
+            f"(known: {', '.join(map(str, sorted(obj_ids)))})")
+        keep &= ~unknown
+    in_scenes = dets["scene_id"].isin(scene_ids).to_numpy()
+    keep &= in_scenes
+    known_images = set()
+    for sid in scene_ids:
+        known_images.update((sid, i) for i in ds.image_ids(sid))
+    has_image = np.array([(s, i) in known_images for s, i in zip(dets["scene_id"], dets["im_id"])], bool)
+    missing = in_scenes & ~has_image
+    if missing.any():
+        first = dets[missing].iloc[0]
+        raise CosyError(f"{int(missing.sum())} detection(s) name images that scene {int(first.scene_id)} does not "
+                        f"have (first: row {int(np.flatnonzero(missing)[0])}, im_id {int(first.im_id)})", path=source)
+    return dets[keep].reset_index(drop=True)
+
+
+def clip_boxes(xywh: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N, 4) x, y, w, h px -> (N, 4) x1, y1, x2, y2 clipped to the image (pixel-edge coords)."""
+    b = np.asarray(xywh, dtype=np.float64).reshape(-1, 4)
+    x1 = np.clip(b[:, 0], 0, width)
+    y1 = np.clip(b[:, 1], 0, height)
+    x2 = np.clip(b[:, 0] + b[:, 2], 0, width)
+    y2 = np.clip(b[:, 1] + b[:, 3], 0, height)
+    return np.stack([x1, y1, x2, y2], 1)
+
+
+# ------------------------------------------------------------------------------------------------
+# the estimator
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class ImageEstimate:
+    """The chain's result for one image: ``T`` (N, 4, 4) final poses (mm); ``steps``: name ->
+    (N, 4, 4) poses after each step ("coarse", "refiner_1".., "icp"); ``times``: step -> s."""
+
+    T: np.ndarray
+    steps: dict = field(default_factory=dict)
+    times: dict = field(default_factory=dict)
+
+
+class Estimator:
+    """The single-view chain for one set of objects; reusable over images.
+
+    db: ObjectDatabase; conf: a resolved configuration whose "auto" entries have been decided
+    (see :func:`decide`); coarse_model / refiner_model: ONNX paths (when used); templates: a
+    TemplateSet (when coarse is "templates")."""
+
+    def __init__(self, conf: dict, db, *, coarse_model: Path | None = None, refiner_model: Path | None = None,
+                 templates=None):
+        self.conf = conf
+        self.db = db
+        self.templates = templates
+        self._renderer = None
+        self.coarse_net = self.refiner_net = None
+        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" else None
+        if conf["coarse"] == "network":
+            self.coarse_net = self._runner(coarse_model, "coarse", providers)
+        if conf["refiner"] == "network":
+            self.refiner_net = self._runner(refiner_model, "refiner", providers)
+
+    def _runner(self, path, kind, providers):
+        from .onnx import OnnxPoseNet
+        from .render_compare import RenderAndCompare
+
+        net = OnnxPoseNet(path, providers=providers)
+        if net.kind != kind:
+            raise CosyError(f"expected a {kind} model, this one is a {net.kind} model", path=path)
+        hulls = {o.obj_id: np.asarray(o.mesh.convex_hull.vertices, dtype=np.float64) for o in self.db}
+        return RenderAndCompare(net, self.renderer, hulls, batch_size=self.conf["batch_size"])
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            from ..rendering import SceneRenderer
+
+            self._renderer = SceneRenderer({o.obj_id: o.mesh for o in self.db}, 64, 64)
+        return self._renderer
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def estimate(self, rgb: np.ndarray, depth: np.ndarray | None, K: np.ndarray, boxes: np.ndarray,
+                 obj_ids: np.ndarray) -> ImageEstimate:
+        """Poses of N detections of one image: rgb (H, W, 3) uint8, depth (H, W) mm or None, K (3, 3),
+        boxes (N, 4) x1, y1, x2, y2 px (pixel-edge), obj_ids (N,)."""
+        c = self.conf
+        N = len(boxes)
+        res = ImageEstimate(np.zeros((N, 4, 4)))
+        if N == 0:
+            return res
+        use_depth = c["depth_refine"] == "icp"
+        if use_depth and depth is None:
+            raise CosyError("depth refinement (icp) needs depth images; this dataset has none (use --depth-refine none)")
+        t0 = time.perf_counter()
+        if c["coarse"] == "network":
+            hyp = self.coarse_net.coarse(rgb, K, boxes, obj_ids)[:, None]
+            hyp_score = np.ones((N, 1))
+        else:
+            from .templates import match_templates
+
+            h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=c["top_k"])
+            hyp, hyp_score = h.T_cam_obj, h.scores
+        k = hyp.shape[1]
+        res.times["coarse"] = time.perf_counter() - t0
+        res.steps["coarse"] = hyp[:, 0].copy()
+        T = hyp[:, 0].copy()
+        if use_depth:
+            from .icp import IcpConf, refine_with_depth
+
+            t0 = time.perf_counter()
+            icp_conf = IcpConf(iterations=c["icp_iterations"])
+            r = refine_with_depth(depth, K, np.repeat(boxes, k, 0), np.repeat(obj_ids, k), hyp.reshape(-1, 4, 4),
+                                  self.db, icp_conf)
+            fit = r.fit_score.reshape(N, k) + 1e-3 * hyp_score / max(float(np.abs(hyp_score).max()), 1e-9)
+            best = fit.argmax(1)
+            T = r.T_cam_obj.reshape(N, k, 4, 4)[np.arange(N), best]
+            res.times["icp"] = time.perf_counter() - t0
+            res.steps["icp"] = T.copy()
+        if self.refiner_net is not None and c["refiner_iterations"] > 0:
+            t0 = time.perf_counter()
+            for i, Ti in enumerate(self.refiner_net.iterate(rgb, K, T, obj_ids, c["refiner_iterations"]), 1):
+                res.steps[f"refiner_{i}"] = Ti
+            T = Ti
+            res.times["refiner"] = time.perf_counter() - t0
+            if use_depth:
+                t0 = time.perf_counter()
+                r = refine_with_depth(depth, K, boxes, obj_ids, T, self.db, icp_conf)
+                T = r.T_cam_obj
+                res.times["icp"] += time.perf_counter() - t0
+                res.steps["refiner_icp"] = T.copy()
+        res.T = T
+        return res
+
+
+def decide(conf: dict, *, coarse_model: Path | None, refiner_model: Path | None, has_depth: bool) -> dict:
+    """Replace the "auto" entries of ``conf`` by what is available (a copy)."""
+    c = dict(conf)
+    if c["coarse"] == "auto":
+        c["coarse"] = "network" if coarse_model is not None and Path(coarse_model).is_file() else "templates"
+    if c["refiner"] == "auto":
+        c["refiner"] = "network" if refiner_model is not None and Path(refiner_model).is_file() else "none"
+    if c["depth_refine"] == "auto":
+        c["depth_refine"] = "icp" if has_depth else "none"
+    return c
+
+
+def describe(conf: dict) -> str:
+    parts = [f"coarse {conf['coarse']}" + (f" (top {conf['top_k']})" if conf["coarse"] == "templates" else "")]
+    if conf["depth_refine"] == "icp":
+        parts.append("ICP on depth")
+    if conf["refiner"] == "network" and conf["refiner_iterations"] > 0:
+        parts.append(f"refiner x{conf['refiner_iterations']}")
+    return " -> ".join(parts)
+
+
+def _model_path(given, shipped: Path, kind: str, needed: bool) -> Path | None:
+    if given is not None:
+        p = Path(given)
+        if not p.is_file():
+            raise CosyError(f"{kind} model not found: train one with `cosy train {kind}` and export it with "
+                            "`cosy export`, or leave the option out to use the shipped model", path=p)
+        return p
+    if shipped.is_file():
+        return shipped
+    if needed:
+        raise CosyError(f"no {kind} model was given and none is shipped with cosy (expected {shipped}); train one with "
+                        f"`cosy train {kind}` + `cosy export`, or choose another method")
+    return None
+
+
+# ------------------------------------------------------------------------------------------------
+# the stage
+# ------------------------------------------------------------------------------------------------
+def output_paths(out: Path) -> tuple[Path, Path]:
+    return out.with_suffix(".timing.csv"), out.with_suffix(".json")
+
+
+def _inputs_doc(ds: BopDataset, split: str, scene_ids, detections, models_dir: Path, coarse, refiner) -> dict:
+    return {
+        "dataset": str(Path(ds.root).resolve()), "split": split, "scene_ids": [int(s) for s in scene_ids],
+        "detections": "gt" if detections is None else {"path": str(Path(detections).resolve()),
+                                                       "sha1": file_sha1(detections)},
+        "models": {"dir": str(models_dir.resolve()), "models_info_sha1": file_sha1(models_dir / "models_info.json")},
+        "coarse_model": None if coarse is None else {"path": str(coarse), "sha1": file_sha1(coarse)},
+        "refiner_model": None if refiner is None else {"path": str(refiner), "sha1": file_sha1(refiner)},
+    }
+
+
+def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False, *,
+         scene_ids: list[int] | None = None, detections: str | Path | None = None, from_gt: bool = False,
+         models_dir: str | Path | None = None, coarse_model: str | Path | None = None,
+         refiner_model: str | Path | None = None, templates_dir: str | Path | None = None,
+         split_type: str | None = None, log=print, progress: bool = True, keep_steps: bool = False) -> dict | None:
+    """Run ``cosy estimate``; returns the summary (None when ``out`` is up to date and skipped).
+
+    detections: a BOP detections JSON, or ``from_gt`` for the visible GT boxes. models_dir: the
+    objects (default the dataset's models/). coarse_model / refiner_model: ONNX files (default the
+    shipped ones). templates_dir: where templates are built/reused (default ``<out dir>/templates``).
+    keep_steps: also return the poses after every step (``summary["steps"]``, for benchmarks).
+    """
+    from tqdm import tqdm
+
+    from ..objects import ObjectDatabase
+
+    t_start = time.perf_counter()
+    conf = resolve_conf(conf)
+    out = Path(out)
+    timing_path, doc_path = output_paths(out)
+    if (detections is None) == (not from_gt):
+        raise CosyError("give either a detections file (--detections) or --from-gt")
+    ds = BopDataset(dataset, split, split_type=split_type) if split_type else BopDataset(dataset, split)
+    all_scenes = ds.scene_ids
+    if scene_ids is None:
+        scene_ids = all_scenes
+    else:
+        missing = sorted(set(scene_ids) - set(all_scenes))
+        if missing:
+            raise CosyError(f"scene(s) {missing} not in the split (has {all_scenes})", path=ds.split_dir)
+    models_dir = Path(models_dir) if models_dir is not None else ds.models_dir
+    first_scene = scene_ids[0] if scene_ids else None
+    has_depth = first_scene is not None and bool(ds.image_ids(first_scene)) and \
+        ds.depth_path(first_scene, ds.image_ids(first_scene)[0]) is not None
+    wants = {k: conf[k] for k in ("coarse", "refiner")}
+    coarse_model = _model_path(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
+    refiner_model = _model_path(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
+    run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
+    if run_conf["depth_refine"] == "icp" and not has_depth:
+        raise CosyError("--depth-refine icp needs depth images, and this split has none "
+                        "(use --depth-refine none)", path=ds.split_dir)
+    used_coarse = coarse_model if run_conf["coarse"] == "network" else None
+    used_refiner = refiner_model if run_conf["refiner"] == "network" else None
+    inputs = _inputs_doc(ds, split, scene_ids, detections, models_dir, used_coarse, used_refiner)
+
+    if out.exists() and not overwrite and not keep_steps:
+        reasons = _stale_reasons(doc_path, run_conf, inputs)
+        if not reasons:
+            log(f"estimate: {out} exists and is up to date, skipping (use --overwrite to recompute)")
+            return None
+        raise CosyError(f"exists but was made from other inputs or settings: {'; '.join(reasons)} "
+                        "(use --overwrite to recompute)", path=out)
+
+    db = ObjectDatabase.from_models_dir(models_dir)
+    if from_gt:
+        dets = detections_from_gt(ds, scene_ids, conf["min_visib_fract"])
+        source = f"GT boxes of {ds.split_dir}"
+    else:
+        dets = bop.read_detections(detections)
+        source = str(detections)
+    dets = check_detections(dets, ds, scene_ids, set(db.obj_ids), source, log)
+
+    templates = None
+    if run_conf["coarse"] == "templates":
+        from . import templates as tpl
+
+        tdir = Path(templates_dir) if templates_dir is not None else out.parent / "templates"
+        # an existing templates folder keeps the settings it was built with (cosy templates
+        # --viewpoints ...); a new one gets the default settings
+        old = tpl.read_manifest(tdir) if tdir.is_dir() else None
+        tpl.main(old["conf"] if old and old.get("conf") else None, models_dir, tdir, log=log)
+        templates = tpl.TemplateSet.load(tdir)
+    log(f"estimate: {describe(run_conf)}; {len(dets)} detections in {len(scene_ids)} scene(s)")
+
+    est = Estimator(run_conf, db, coarse_model=used_coarse, refiner_model=used_refiner, templates=templates)
+    images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
+    groups = dets.groupby(["scene_id", "im_id"]).indices
+    rows_T, rows_meta, timing, steps = [], [], [], {}
+    skipped_boxes = 0
+    try:
+        for sid, im_id in tqdm(images, desc="estimate", unit="image", disable=not progress, dynamic_ncols=True):
+            idx = groups.get((sid, im_id))
+            if idx is None:
+                timing.append({"scene_id": sid, "im_id": im_id, "detections": 0, "time_s": 0.0})
+                continue
+            t0 = time.perf_counter()
+            d = dets.iloc[idx]
+            rgb_path = ds.rgb_path(sid, im_id)
+            rgb = ds.read_rgb(sid, im_id)
+            depth = ds.read_depth(sid, im_id) if run_conf["depth_refine"] == "icp" else None
+            if run_conf["depth_refine"] == "icp" and depth is None:
+                raise CosyError("depth image missing (needed by --depth-refine icp)", path=rgb_path)
+            K = ds.scene_camera(sid)[im_id].K
+            H, W = rgb.shape[:2]
+            boxes = clip_boxes(d[["x", "y", "w", "h"]].to_numpy(), W, H)
+            ok = ((boxes[:, 2] - boxes[:, 0]) >= 2) & ((boxes[:, 3] - boxes[:, 1]) >= 2)
+            skipped_boxes += int((~ok).sum())
+            d, boxes = d[ok], boxes[ok]
+            r = est.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy())
+            dt = time.perf_counter() - t0
+            rows_T.append(r.T)
+            rows_meta.append(pd.DataFrame({"scene_id": sid, "im_id": im_id, "obj_id": d["obj_id"].to_numpy(),
+                                           "score": d["score"].to_numpy(), "time": dt,
+                                           "det_index": d.index.to_numpy()}))
+            timing.append({"scene_id": sid, "im_id": im_id, "detections": len(d), "time_s": dt,
+                           **{f"{k}_s": v for k, v in r.times.items()}})
+            if keep_steps:
+                for name, T in r.steps.items():
+                    steps.setdefault(name, []).append(T)
+    finally:
+        est.close()
+    if skipped_boxes:
+        log(f"estimate: skipped {skipped_boxes} detection(s) whose box has less than 2 px inside the image")
+    meta = pd.concat(rows_meta, ignore_index=True) if rows_meta else pd.DataFrame(
+        columns=["scene_id", "im_id", "obj_id", "score", "time", "det_index"])
+    T_all = np.concatenate(rows_T) if rows_T else np.zeros((0, 4, 4))
+    res = bop.PoseResults.from_arrays(meta["scene_id"], meta["im_id"], meta["obj_id"], meta["score"], T_all,
+                                      meta["time"])
+    timing_df = pd.DataFrame(timing).fillna(0.0)
+    n_img = int((timing_df["detections"] > 0).sum()) if len(timing_df) else 0
+    busy = timing_df[timing_df["detections"] > 0] if len(timing_df) else timing_df
+    summary = {
+        "method": describe(run_conf), "conf": run_conf, "inputs": inputs, "images": len(images),
+        "images_with_detections": n_img, "detections": int(len(res)), "skipped_boxes": skipped_boxes,
+        "time_per_image_s": float(busy["time_s"].mean()) if n_img else 0.0,
+        "time_per_detection_s": float(busy["time_s"].sum() / max(len(res), 1)),
+        "time_total_s": round(time.perf_counter() - t_start, 3),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(timing_path) as tmp:
+        timing_df.to_csv(tmp, index=False, float_format="%.6g")
+    write_json(doc_path, summary)
+    bop.write_results(out, res)  # last: a complete CSV means the whole stage finished
+    log(f"estimate: {len(res)} candidates from {n_img} images, {summary['time_per_image_s'] * 1e3:.0f} ms per image "
+        f"({summary['time_per_detection_s'] * 1e3:.0f} ms per detection) -> {out}")
+    if keep_steps:
+        summary["steps"] = {k: np.concatenate(v) for k, v in steps.items()}
+        summary["det_index"] = meta["det_index"].to_numpy()
+        summary["detections_table"] = dets
+    return summary
+
+
+def _stale_reasons(doc_path: Path, run_conf: dict, inputs: dict) -> list[str]:
+    try:
+        doc = json.loads(doc_path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return [f"{doc_path.name} missing or unreadable"]
+    reasons = []
+    old = doc.get("conf") or {}
+    changed = sorted(k for k in set(run_conf) | set(old) if old.get(k) != run_conf.get(k))
+    if changed:
+        reasons.append(f"settings changed ({', '.join(changed)})")
+    old_in = doc.get("inputs") or {}
+    changed = sorted(k for k in set(inputs) | set(old_in) if old_in.get(k) != inputs.get(k))
+    if changed:
+        reasons.append(f"inputs changed ({', '.join(changed)})")
+    return reasons

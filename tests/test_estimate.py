@@ -1,0 +1,122 @@
+"""`cosy estimate`: detections in, BOP candidates out (templates + ICP chain, shipped networks), errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cosy_cli.cli.main import cli
+from cosy_cli.evaluation.pose_error import adi
+from cosy_cli.io import bop
+from cosy_cli.io.dataset import BopDataset
+from cosy_cli.objects import ObjectDatabase
+from cosy_cli.singleview import estimate_stage
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+SCENE = SAMPLES / "test" / "000001"
+SMALL_TEMPLATES = {"viewpoints": 200, "inplane": 24}
+
+
+@pytest.fixture(scope="module")
+def ds():
+    return BopDataset(SAMPLES, "test")
+
+
+@pytest.fixture(scope="module")
+def templates_dir(tmp_path_factory):
+    """Templates of the sample objects at a reduced resolution (fast to build)."""
+    from cosy_cli.singleview import templates
+
+    out = tmp_path_factory.mktemp("tpl") / "templates"
+    templates.main(SMALL_TEMPLATES, SAMPLES / "models", out, log=lambda *_: None)
+    return out
+
+
+def _run(args):
+    return CliRunner().invoke(cli, args, catch_exceptions=False)
+
+
+def test_gt_detections_are_the_visible_boxes(ds):
+    dets = estimate_stage.detections_from_gt(ds, [1], 0.1)
+    info, gt = ds.scene_gt_info(1), ds.scene_gt(1)
+    n = sum(1 for im in info for i in info[im] if i.visib_fract >= 0.1)
+    assert len(dets) == n > 0
+    r = dets.iloc[0]
+    box = info[int(r.im_id)][int(r.gt_index)].bbox_visib
+    np.testing.assert_allclose([r.x, r.y, r.w, r.h], box)
+    assert gt[int(r.im_id)][int(r.gt_index)].obj_id == r.obj_id
+    assert len(estimate_stage.detections_from_gt(ds, [1], 0.99)) < n
+
+
+def test_unknown_labels_are_skipped_and_reported(ds):
+    dets = estimate_stage.detections_from_gt(ds, [1], 0.1)
+    dets.loc[0, "obj_id"] = 99
+    lines = []
+    kept = estimate_stage.check_detections(dets, ds, [1], {1, 2, 3, 4, 5, 6, 7, 8}, "dets.json", lines.append)
+    assert len(kept) == len(dets) - 1
+    assert "obj_id 99" in lines[0] and "dets.json" in lines[0]
+    dets.loc[1, "im_id"] = 999
+    with pytest.raises(Exception, match="im_id 999"):
+        estimate_stage.check_detections(dets, ds, [1], {1, 2, 3, 4, 5, 6, 7, 8}, "dets.json", lines.append)
+
+
+def test_boxes_are_clipped_to_the_image():
+    b = estimate_stage.clip_boxes(np.array([[-10, 5, 30, 20], [630, 470, 40, 40]]), 640, 480)
+    np.testing.assert_allclose(b, [[0, 5, 20, 25], [630, 470, 640, 480]])
+
+
+def test_templates_icp_candidates_from_a_scene(tmp_path, templates_dir, ds):
+    out = tmp_path / "cands.csv"
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert "coarse templates" in r.output and "ICP" in r.output
+    res = bop.read_results(out)
+    dets = estimate_stage.detections_from_gt(ds, [1], 0.1)
+    assert len(res) == len(dets)
+    assert (res.table["score"] == 1.0).all() and (res.table["time"] > 0).all()
+    # accuracy against GT: the candidates are in the right camera frame and mostly correct
+    db = ObjectDatabase.from_models_dir(SAMPLES / "models")
+    gt = ds.scene_gt(1)
+    ok = []
+    for (im, gi, o), T in zip(dets[["im_id", "gt_index", "obj_id"]].itertuples(index=False), res.T_cam_obj):
+        ok.append(adi(T, gt[im][gi].T_cam_obj, db[o].points)[0] < 0.1 * db[o].diameter)
+    assert np.mean(ok) >= 0.7, f"recall {np.mean(ok):.2f}"
+    timing = (tmp_path / "cands.timing.csv").read_text().splitlines()
+    assert timing[0].startswith("scene_id,im_id,detections,time_s")
+    doc = json.loads((tmp_path / "cands.json").read_text())
+    assert doc["conf"]["coarse"] == "templates" and doc["conf"]["depth_refine"] == "icp"
+    # cached: a second run skips; other settings are refused without --overwrite
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+    assert r.exit_code == 0 and "skipping" in r.output
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+              "--depth-refine", "icp", "--top-k", "2", "--templates-dir", str(templates_dir), "--out", str(out)])
+    assert r.exit_code == 2 and "settings changed (top_k)" in r.output
+
+
+def test_bad_input_gives_clear_errors(tmp_path, templates_dir):
+    out = str(tmp_path / "c.csv")
+    r = _run(["estimate", "--scene", str(SCENE), "--out", out])
+    assert r.exit_code == 2 and "--detections" in r.output and "--from-gt" in r.output
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--refiner", str(tmp_path / "nope.onnx"), "--out", out])
+    assert r.exit_code == 2 and "nope.onnx" in r.output and "cosy train refiner" in r.output
+    r = _run(["estimate", "--scene", str(tmp_path / "missing" / "000001"), "--from-gt", "--out", out])
+    assert r.exit_code == 2 and "scene folder not found" in r.output
+    # a dataset without depth: ICP is refused with a clear message, auto falls back to RGB only
+    nodepth = tmp_path / "nodepth"
+    shutil.copytree(SAMPLES / "models", nodepth / "models")
+    shutil.copytree(SCENE, nodepth / "test" / "000001", ignore=shutil.ignore_patterns("depth"))
+    r = _run(["estimate", "--scene", str(nodepth / "test" / "000001"), "--from-gt", "--coarse", "templates",
+              "--refiner", "none", "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", out])
+    assert r.exit_code == 2 and "depth" in r.output and "--depth-refine none" in r.output
+    # a detections file with an empty box
+    dets = tmp_path / "dets.json"
+    dets.write_text(json.dumps([{"scene_id": 1, "image_id": 0, "category_id": 1, "score": 0.9, "bbox": [1, 2, 0, 5]}]))
+    r = _run(["estimate", "--scene", str(SCENE), "--detections", str(dets), "--out", out])
+    assert r.exit_code == 2 and "dets.json" in r.output and "non-positive" in r.output
