@@ -39,8 +39,7 @@ $(VENV): $(VENV)/.installed
 DEMO_OUT ?= demo_out
 demo: $(VENV)/.installed
 	$(COSY) validate --dataset data_samples --split test
-	$(COSY) synth-candidates --dataset data_samples --split test --out $(DEMO_OUT)/candidates.csv --seed 0 \
-	  --gt-out $(DEMO_OUT)/candidates_gt.csv
+	$(COSY) estimate --dataset data_samples --split test --from-gt --out $(DEMO_OUT)/candidates.csv
 	$(COSY) match --dataset data_samples --split test --candidates $(DEMO_OUT)/candidates.csv --out $(DEMO_OUT)/match
 	$(COSY) refine --dataset data_samples --split test --matches $(DEMO_OUT)/match --out $(DEMO_OUT)/refine
 	$(COSY) evaluate --dataset data_samples --split test --predictions $(DEMO_OUT)/candidates.csv \
