@@ -65,7 +65,7 @@ def test_exact_update_reaches_the_target(gen):
     for i in range(4):
         T_in, T_gt = b["T_input"][i:i + 1].copy(), b["T_gt"][i:i + 1].copy()
         _, K_crop, _, _ = rc.make_inputs(np.zeros((480, 640, 3), np.uint8), b["K"][i], T_in, b["obj_id"][i:i + 1])
-        target = update_targets(torch.from_numpy(T_in), torch.from_numpy(T_gt), torch.from_numpy(K_crop)).numpy()
+        target = update_targets(torch.from_numpy(T_in), torch.from_numpy(T_gt), torch.tensor(K_crop)).numpy()
         rc.net = _Fixed(net.config, target)
         T_out = rc.step(np.zeros((480, 640, 3), np.uint8), b["K"][i], T_in, b["obj_id"][i:i + 1])
         np.testing.assert_allclose(T_out[0, :3, 3], T_gt[0, :3, 3], atol=1e-3)

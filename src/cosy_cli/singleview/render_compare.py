@@ -83,7 +83,7 @@ class RenderAndCompare:
         x, K_crop, _, _ = self.make_inputs(rgb, K, T, ids)
         update = np.asarray(self.net(x), dtype=np.float64)
         with torch.no_grad():
-            T_new = apply_update(torch.from_numpy(T), torch.from_numpy(update), torch.from_numpy(K_crop))
+            T_new = apply_update(*(torch.tensor(np.asarray(a, dtype=np.float64)) for a in (T, update, K_crop)))
         return T_new.numpy()
 
     def coarse(self, rgb: np.ndarray, K: np.ndarray, boxes: np.ndarray, obj_ids: np.ndarray) -> np.ndarray:
