@@ -68,6 +68,15 @@ def score_steps(summary: dict, ds: BopDataset, db: ObjectDatabase) -> list[tuple
     return rows
 
 
+def ensure_heldout(dataset: Path) -> Path:
+    """The held-out synthetic dataset at ``dataset``, made with `cosy synth --seed 101` (4 scenes x 6
+    views x 6 objects of the data_samples objects) when it is missing."""
+    if not (Path(dataset) / "test").is_dir():
+        subprocess.run([sys.executable, "-m", "cosy_cli", "synth", "--out", str(dataset), "--scenes", "4",
+                        "--views", "6", "--objects", "6", "--seed", "101", "--quiet"], check=True)
+    return Path(dataset)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=Path(tempfile.gettempdir()) / "cosy_heldout")
@@ -77,9 +86,7 @@ def main() -> None:
     ap.add_argument("--templates-dir", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_templates")
     ap.add_argument("--scenes", type=int, default=None, help="only the first N scenes")
     args = ap.parse_args()
-    if not (args.dataset / "test").is_dir():
-        subprocess.run([sys.executable, "-m", "cosy_cli", "synth", "--out", str(args.dataset), "--scenes", "4",
-                        "--views", "6", "--objects", "6", "--seed", "101", "--quiet"], check=True)
+    ensure_heldout(args.dataset)
     ds = BopDataset(args.dataset, "test")
     db = ObjectDatabase.from_models_dir(ds.models_dir)
     scenes = ds.scene_ids[: args.scenes] if args.scenes else None

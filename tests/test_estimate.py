@@ -11,6 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from cosy_cli.cli.main import cli
+from cosy_cli.detection.importers import detections_from_gt
 from cosy_cli.evaluation.pose_error import adi
 from cosy_cli.io import bop
 from cosy_cli.io.dataset import BopDataset
@@ -42,7 +43,7 @@ def _run(args):
 
 
 def test_gt_detections_are_the_visible_boxes(ds):
-    dets = estimate_stage.detections_from_gt(ds, [1], 0.1)
+    dets = detections_from_gt(ds, [1], 0.1)
     info, gt = ds.scene_gt_info(1), ds.scene_gt(1)
     n = sum(1 for im in info for i in info[im] if i.visib_fract >= 0.1)
     assert len(dets) == n > 0
@@ -50,11 +51,11 @@ def test_gt_detections_are_the_visible_boxes(ds):
     box = info[int(r.im_id)][int(r.gt_index)].bbox_visib
     np.testing.assert_allclose([r.x, r.y, r.w, r.h], box)
     assert gt[int(r.im_id)][int(r.gt_index)].obj_id == r.obj_id
-    assert len(estimate_stage.detections_from_gt(ds, [1], 0.99)) < n
+    assert len(detections_from_gt(ds, [1], 0.99)) < n
 
 
 def test_unknown_labels_are_skipped_and_reported(ds):
-    dets = estimate_stage.detections_from_gt(ds, [1], 0.1)
+    dets = detections_from_gt(ds, [1], 0.1)
     dets.loc[0, "obj_id"] = 99
     lines = []
     kept = estimate_stage.check_detections(dets, ds, [1], {1, 2, 3, 4, 5, 6, 7, 8}, "dets.json", lines.append)
@@ -77,7 +78,7 @@ def test_templates_icp_candidates_from_a_scene(tmp_path, templates_dir, ds):
     assert r.exit_code == 0, r.output
     assert "coarse templates" in r.output and "ICP" in r.output
     res = bop.read_results(out)
-    dets = estimate_stage.detections_from_gt(ds, [1], 0.1)
+    dets = detections_from_gt(ds, [1], 0.1)
     assert len(res) == len(dets)
     assert (res.table["score"] == 1.0).all() and (res.table["time"] > 0).all()
     # accuracy against GT: the candidates are in the right camera frame and mostly correct

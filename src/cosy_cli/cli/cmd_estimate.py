@@ -6,8 +6,7 @@ from pathlib import Path
 
 import click
 
-from ..errors import CosyError
-from .common import user_errors
+from .common import resolve_scenes, scene_options, user_errors
 
 COARSE_METHODS = ("network", "templates", "auto")
 REFINER_METHODS = ("network", "none", "auto")
@@ -22,24 +21,8 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
     return network, Path(value)
 
 
-def _scene_location(scene: Path) -> tuple[Path, str, int]:
-    """A BOP scene folder DATASET/SPLIT/SCENE_ID -> (dataset root, split, scene id)."""
-    scene = Path(scene)
-    if not scene.is_dir():
-        raise CosyError("scene folder not found", path=scene)
-    try:
-        sid = int(scene.name)
-    except ValueError:
-        raise CosyError("a BOP scene folder is named by its scene id (e.g. test/000001)", path=scene) from None
-    return scene.resolve().parent.parent, scene.resolve().parent.name, sid
-
-
 @click.command("estimate")
-@click.option("--scene", type=click.Path(path_type=Path), default=None,
-              help="One BOP scene folder DATASET/SPLIT/SCENE_ID (instead of --dataset/--split).")
-@click.option("--dataset", type=click.Path(path_type=Path), default=None, help="BOP dataset folder (all scenes of --split).")
-@click.option("--split", default="test", show_default=True, help="Split folder (with --dataset).")
-@click.option("--scene-id", "scene_ids", type=int, multiple=True, help="Only these scenes (repeatable; with --dataset).")
+@scene_options
 @click.option("--models", "models_dir", type=click.Path(path_type=Path), default=None,
               help="Models folder (obj_XXXXXX.ply in mm + models_info.json) [the dataset's models/].")
 @click.option("--detections", type=click.Path(path_type=Path), default=None,
@@ -77,19 +60,13 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
     """
     from ..singleview import estimate_stage
 
-    if (scene is None) == (dataset is None):
-        raise CosyError("give either --scene DIR or --dataset DIR")
-    if scene is not None:
-        if scene_ids:
-            raise CosyError("--scene-id goes with --dataset, not --scene")
-        dataset, split, sid = _scene_location(scene)
-        scene_ids = [sid]
+    dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
     coarse_method, coarse_model = _method_or_model(coarse, COARSE_METHODS)
     refiner_method, refiner_model = _method_or_model(refiner, REFINER_METHODS)
     c = estimate_stage.resolve_conf(conf, coarse=coarse_method, refiner=refiner_method, depth_refine=depth_refine,
                                     refiner_iterations=refiner_iterations, top_k=top_k, providers=providers,
                                     batch_size=batch_size)
-    estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=list(scene_ids) or None,
+    estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
                         refiner_model=refiner_model, templates_dir=templates_dir, log=click.echo, progress=not quiet)
 

@@ -38,3 +38,49 @@ def reuse_existing_output(out: str | Path, stage: str, output_files: Iterable[st
                         path=out)
     log(f"{stage}: {out} exists and is up to date, skipping (use --overwrite to recompute)")
     return True
+
+
+def _plain(obj):
+    """``obj`` as JSON would give it back (tuples -> lists, int keys -> str...)."""
+    import json
+
+    return json.loads(json.dumps(obj))
+
+
+def sidecar_stale_reasons(doc_path: str | Path, conf: dict, inputs: dict) -> list[str]:
+    """Why an output described by the JSON sidecar ``doc_path`` (keys ``conf`` and ``inputs``) was
+    not made from ``conf`` and ``inputs`` (empty: it was)."""
+    import json
+
+    doc_path = Path(doc_path)
+    try:
+        doc = json.loads(doc_path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return [f"{doc_path.name} missing or unreadable"]
+    reasons = []
+    old, new = doc.get("conf") or {}, _plain(conf)
+    changed = sorted(k for k in set(new) | set(old) if old.get(k) != new.get(k))
+    if changed:
+        reasons.append(f"settings changed ({', '.join(changed)})")
+    old, new = doc.get("inputs") or {}, _plain(inputs)
+    changed = sorted(k for k in set(new) | set(old) if old.get(k) != new.get(k))
+    if changed:
+        reasons.append(f"inputs changed ({', '.join(changed)})")
+    return reasons
+
+
+def reuse_existing_file(out: str | Path, doc_path: str | Path, stage: str, overwrite: bool, conf: dict, inputs: dict,
+                        log=print) -> bool:
+    """The single-file version of :func:`reuse_existing_output`: True when ``out`` exists and its
+    sidecar ``doc_path`` records the same ``conf`` and ``inputs`` (skip the stage); False when the
+    stage must run (no output yet, or ``overwrite``); a :class:`CosyError` naming what changed
+    otherwise."""
+    out = Path(out)
+    if overwrite or not out.exists():
+        return False
+    reasons = sidecar_stale_reasons(doc_path, conf, inputs)
+    if reasons:
+        raise CosyError(f"exists but was made from other inputs or settings: {'; '.join(reasons)} "
+                        "(use --overwrite to recompute)", path=out)
+    log(f"{stage}: {out} exists and is up to date, skipping (use --overwrite to recompute)")
+    return True

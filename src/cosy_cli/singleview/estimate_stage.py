@@ -22,7 +22,6 @@ and seconds per step) and ``<out>.json`` (settings, inputs, what ran, totals).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,15 +30,18 @@ import numpy as np
 import pandas as pd
 
 from ..conf import merge_conf
+from ..detection.importers import DET_COLUMNS, detections_from_gt  # noqa: F401 (DET_COLUMNS: re-exported)
 from ..errors import CosyError
 from ..io import bop
 from ..io.atomic import atomic_path, write_json
 from ..io.cache import file_sha1
+from ..io.cache import sidecar_stale_reasons as _stale_reasons
 from ..io.dataset import BopDataset
+from ..shipped import ASSETS, shipped  # noqa: F401 (ASSETS: re-exported)
+from ..shipped import model_path as _model_path
 
-ASSETS = Path(__file__).resolve().parent.parent / "assets"
-SHIPPED_COARSE = ASSETS / "coarse.onnx"
-SHIPPED_REFINER = ASSETS / "refiner.onnx"
+SHIPPED_COARSE = shipped("coarse.onnx")
+SHIPPED_REFINER = shipped("refiner.onnx")
 
 CONFS = {
     # The most accurate combination available (see the module docstring).
@@ -81,31 +83,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
 # ------------------------------------------------------------------------------------------------
 # detections
 # ------------------------------------------------------------------------------------------------
-DET_COLUMNS = ["scene_id", "im_id", "obj_id", "score", "x", "y", "w", "h"]
-
-
-def detections_from_gt(ds: BopDataset, scene_ids: list[int], min_visib_fract: float = 0.1) -> pd.DataFrame:
-    """Visible GT boxes (``bbox_visib`` of scene_gt_info.json, px) of instances with visib_fract >=
-    ``min_visib_fract``, as a detections table (score 1). Also returns the GT index (column
-    ``gt_index``) for evaluation."""
-    rows = []
-    for sid in scene_ids:
-        if not ds.has_gt(sid):
-            raise CosyError("--from-gt needs scene_gt.json and scene_gt_info.json", path=ds.scene_dir(sid))
-        gt, info = ds.scene_gt(sid), ds.scene_gt_info(sid)
-        for im_id in ds.image_ids(sid):
-            insts, infos = gt.get(im_id, []), info.get(im_id, [])
-            if len(insts) != len(infos):
-                raise CosyError(f"image {im_id}: {len(insts)} GT instances but {len(infos)} scene_gt_info entries",
-                                path=ds.scene_file(sid, "scene_gt_info"))
-            for i, (g, inf) in enumerate(zip(insts, infos)):
-                x, y, w, h = (float(v) for v in inf.bbox_visib)
-                if inf.visib_fract >= min_visib_fract and w > 0 and h > 0:
-                    rows.append((sid, im_id, g.obj_id, 1.0, x, y, w, h, i))
-    df = pd.DataFrame(rows, columns=DET_COLUMNS + ["gt_index"])
-    for c in ("scene_id", "im_id", "obj_id", "gt_index"):
-        df[c] = df[c].astype(np.int64)
-    return df
+# DET_COLUMNS and detections_from_gt live in cosy_cli.detection.importers (imported above).
 
 
 def check_detections(dets: pd.DataFrame, ds: BopDataset, scene_ids: list[int], obj_ids: set[int], source: str,
@@ -274,24 +252,25 @@ def describe(conf: dict) -> str:
     return " -> ".join(parts)
 
 
-def _model_path(given, shipped: Path, kind: str, needed: bool) -> Path | None:
-    if given is not None:
-        p = Path(given)
-        if not p.is_file():
-            raise CosyError(f"{kind} model not found: train one with `cosy train {kind}` and export it with "
-                            "`cosy export`, or leave the option out to use the shipped model", path=p)
-        return p
-    if shipped.is_file():
-        return shipped
-    if needed:
-        raise CosyError(f"no {kind} model was given and none is shipped with cosy (expected {shipped}); train one with "
-                        f"`cosy train {kind}` + `cosy export`, or choose another method")
-    return None
-
-
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
+def uses_templates(conf: dict) -> bool:
+    """Whether the settings ``conf`` make the coarse step use templates (with the shipped models)."""
+    return conf["coarse"] == "templates" or (conf["coarse"] == "auto" and not Path(SHIPPED_COARSE).is_file())
+
+
+def ensure_templates(models_dir: str | Path, templates_dir: str | Path, log=print) -> Path:
+    """Build or bring up to date the templates of ``models_dir`` in ``templates_dir``. An existing
+    folder keeps the settings it was built with (``cosy templates --viewpoints ...``); a new one
+    gets the default settings."""
+    from . import templates as tpl
+
+    tdir = Path(templates_dir)
+    old = tpl.read_manifest(tdir) if tdir.is_dir() else None
+    return tpl.main(old["conf"] if old and old.get("conf") else None, models_dir, tdir, log=log)
+
+
 def output_paths(out: Path) -> tuple[Path, Path]:
     return out.with_suffix(".timing.csv"), out.with_suffix(".json")
 
@@ -374,10 +353,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         from . import templates as tpl
 
         tdir = Path(templates_dir) if templates_dir is not None else out.parent / "templates"
-        # an existing templates folder keeps the settings it was built with (cosy templates
-        # --viewpoints ...); a new one gets the default settings
-        old = tpl.read_manifest(tdir) if tdir.is_dir() else None
-        tpl.main(old["conf"] if old and old.get("conf") else None, models_dir, tdir, log=log)
+        ensure_templates(models_dir, tdir, log=log)
         templates = tpl.TemplateSet.load(tdir)
     log(f"estimate: {describe(run_conf)}; {len(dets)} detections in {len(scene_ids)} scene(s)")
 
@@ -447,20 +423,3 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         summary["det_index"] = meta["det_index"].to_numpy()
         summary["detections_table"] = dets
     return summary
-
-
-def _stale_reasons(doc_path: Path, run_conf: dict, inputs: dict) -> list[str]:
-    try:
-        doc = json.loads(doc_path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return [f"{doc_path.name} missing or unreadable"]
-    reasons = []
-    old = doc.get("conf") or {}
-    changed = sorted(k for k in set(run_conf) | set(old) if old.get(k) != run_conf.get(k))
-    if changed:
-        reasons.append(f"settings changed ({', '.join(changed)})")
-    old_in = doc.get("inputs") or {}
-    changed = sorted(k for k in set(inputs) | set(old_in) if old_in.get(k) != inputs.get(k))
-    if changed:
-        reasons.append(f"inputs changed ({', '.join(changed)})")
-    return reasons

@@ -1,0 +1,75 @@
+"""``cosy detect``: 2D detections into a BOP detections file; ``cosy evaluate-detections``: their COCO AP."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from .common import dataset_options, resolve_scenes, scene_options, user_errors
+
+
+@click.command("detect")
+@scene_options
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Detections JSON (BOP format, what `cosy estimate --detections` reads; also OUT_STEM.meta.json).")
+@click.option("--model", type=click.Path(path_type=Path), default=None,
+              help="Exported detector ONNX [the detector shipped with cosy]. The default source.")
+@click.option("--from-json", type=click.Path(path_type=Path), default=None,
+              help="Import detections made by another tool: BOP detections ({scene_id, image_id, category_id, score, "
+                   "bbox}) or COCO results ({image_id, category_id, bbox, score}; category_id = obj_id), checked "
+                   "against the dataset.")
+@click.option("--coco-images", type=click.Path(path_type=Path), default=None,
+              help="With COCO results: the COCO dataset JSON whose images' file_name (…/SCENE_ID/rgb/IM_ID.png) "
+                   "maps image_id to the BOP scene and image [without it: image_id = scene_id * 1000000 + im_id].")
+@click.option("--from-gt", is_flag=True, help="The visible GT boxes (scene_gt_info bbox_visib), score 1.")
+@click.option("--min-score", type=click.FloatRange(0, 1), default=None, help="Keep detections scored >= this [0.3].")
+@click.option("--max-per-image", type=click.IntRange(min=1), default=None, help="At most N per image, best first [30].")
+@click.option("--nms-iou", type=click.FloatRange(0, 1, min_open=True), default=None,
+              help="Detector: per-class NMS IoU threshold [0.5].")
+@click.option("--min-visib", "min_visib", type=click.FloatRange(0, 1), default=None,
+              help="--from-gt: instances at least this visible (visib_fract) [0.1, the BOP targets' threshold].")
+@click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
+@click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@user_errors
+def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images, from_gt, min_score, max_per_image,
+           nms_iou, min_visib, providers, overwrite, quiet) -> None:
+    """2D detections of the dataset's objects, one BOP detections file (CosyPose's first input).
+
+    Sources: the shipped detector (default) or --model, --from-json (another tool's detections,
+    BOP or COCO results format), or --from-gt. Boxes are [x, y, w, h] in pixels. Skips when OUT
+    is up to date (unless --overwrite).
+    """
+    from ..detection import stage
+
+    dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
+    c = stage.resolve_conf("default", min_score=min_score, max_per_image=max_per_image, nms_iou=nms_iou,
+                           min_visib_fract=min_visib, providers=providers)
+    stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids, model=model, from_json=from_json,
+               coco_images=coco_images, from_gt=from_gt, log=click.echo, progress=not quiet)
+
+
+@click.command("evaluate-detections")
+@dataset_options("BOP dataset folder with ground truth (scene_gt.json, scene_gt_info.json).")
+@click.option("--scene-id", "scene_ids", type=int, multiple=True, help="Only these scenes (repeatable) [all].")
+@click.option("--detections", required=True, type=click.Path(path_type=Path),
+              help="Detections JSON (BOP or COCO results format, as `cosy detect --from-json` reads).")
+@click.option("--coco-images", type=click.Path(path_type=Path), default=None,
+              help="With COCO results: the COCO dataset JSON mapping image ids (see `cosy detect`).")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Output folder: scores.json, confusion.csv.")
+@click.option("--min-visib", "min_visib", type=click.FloatRange(0, 1), default=0.1, show_default=True,
+              help="GT boxes of instances at least this visible; less visible ones are ignored (COCO crowd).")
+@user_errors
+def evaluate_detections(dataset, split, scene_ids, detections, coco_images, out, min_visib) -> None:
+    """COCO AP, AP50, AP75 (pycocotools) of 2D detections against the visible GT boxes, per-object
+    AP50, and the label confusion between objects (which GT objects are detected under another
+    object's label)."""
+    from ..evaluation import detection_ap
+
+    detection_ap.main(dataset, split, detections, out, scene_ids=list(scene_ids) or None, coco_images=coco_images,
+                      min_visib_fract=min_visib, log=click.echo)
+
+
+COMMANDS = [detect, evaluate_detections]

@@ -1,0 +1,233 @@
+"""``cosy detect``: 2D detections of a dataset's objects into a BOP detections file (stage 0).
+
+Exactly one source:
+
+* ``model`` (the default: the detector shipped with cosy, ``assets/detector.onnx``): an
+  exported detector (:class:`cosy_cli.detection.network.OnnxDetector`) run on every image of
+  the chosen scenes, keeping boxes scored >= ``min_score``, per-class NMS at ``nms_iou``, at
+  most ``max_per_image``; the BOP ``time`` field is the detector's seconds for that image;
+* ``from_json``: a detections file made by another tool, BOP or COCO results format (see
+  :mod:`cosy_cli.detection.importers`), checked against the dataset (object ids, scene and
+  image ids, boxes inside the image), then filtered like the detector's output (``min_score``,
+  ``max_per_image``; no NMS);
+* ``from_gt``: the visible GT boxes (``bbox_visib`` of instances with visib_fract >=
+  ``min_visib_fract``), score 1, time -1.
+
+Output: the BOP detections JSON ``out`` (``cosy estimate --detections`` reads it) and the
+sidecar ``<out stem>.meta.json`` (settings, inputs with their sha1, summary: detections per
+object, mean seconds per image). A current output is reused; one made from other inputs or
+settings is refused unless ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..conf import merge_conf
+from ..errors import CosyError
+from ..io.atomic import write_json
+from ..io.cache import file_sha1, reuse_existing_file
+from ..io.dataset import BopDataset
+from ..shipped import model_path, shipped
+from . import importers
+
+SHIPPED_DETECTOR = shipped("detector.onnx")
+FORMAT_VERSION = 1
+
+CONFS = {
+    "default": {
+        "min_score": 0.3,        # keep detections scored at least this (model and imported files)
+        "max_per_image": 30,     # at most this many per image, best scores first
+        "nms_iou": 0.5,          # model: per-class NMS, drop a box overlapping a better one by more
+        "min_visib_fract": 0.1,  # from_gt: boxes of instances at least this visible (BOP targets: 0.1)
+        "providers": "cpu",      # onnxruntime: cpu | cuda
+    },
+}
+
+
+def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
+    c = merge_conf(CONFS, conf, overrides, default="default", what="detect")
+    if c["providers"] not in ("cpu", "cuda"):
+        raise CosyError(f"detect setting providers: expected cpu or cuda, got {c['providers']!r}")
+    try:
+        c["min_score"], c["nms_iou"] = float(c["min_score"]), float(c["nms_iou"])
+        c["min_visib_fract"], c["max_per_image"] = float(c["min_visib_fract"]), int(c["max_per_image"])
+    except (TypeError, ValueError) as e:
+        raise CosyError(f"detect settings: {e}") from None
+    if not (0 <= c["min_score"] <= 1 and 0 < c["nms_iou"] <= 1 and 0 <= c["min_visib_fract"] <= 1
+            and c["max_per_image"] >= 1):
+        raise CosyError("detect settings out of range (min_score, min_visib_fract in [0, 1], nms_iou in (0, 1], "
+                        f"max_per_image >= 1): {c}")
+    return c
+
+
+def sidecar_path(out: str | Path) -> Path:
+    """``DETS.json`` -> ``DETS.meta.json`` (settings, inputs, summary)."""
+    out = Path(out)
+    return out.with_name(out.stem + ".meta.json") if out.suffix == ".json" else out.with_name(out.name + ".meta.json")
+
+
+def keep_best(dets: pd.DataFrame, min_score: float, max_per_image: int) -> pd.DataFrame:
+    """Rows scored >= ``min_score``, at most ``max_per_image`` per (scene_id, im_id) (best first);
+    sorted by scene, image, decreasing score."""
+    d = dets[dets["score"].to_numpy() >= min_score]
+    d = d.sort_values(["scene_id", "im_id", "score"], ascending=[True, True, False], kind="stable")
+    rank = d.groupby(["scene_id", "im_id"]).cumcount().to_numpy()
+    return d[rank < max_per_image]
+
+
+def _selected_scenes(ds: BopDataset, scene_ids) -> list[int]:
+    all_scenes = ds.scene_ids
+    if scene_ids is None:
+        return all_scenes
+    missing = sorted(set(int(s) for s in scene_ids) - set(all_scenes))
+    if missing:
+        raise CosyError(f"scene(s) {missing} not in the split (has {all_scenes})", path=ds.split_dir)
+    return [int(s) for s in scene_ids]
+
+
+def _clip(boxes_xywh: np.ndarray, W: int, H: int) -> np.ndarray:
+    b = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
+    x1, y1 = np.clip(b[:, 0], 0, W), np.clip(b[:, 1], 0, H)
+    x2, y2 = np.clip(b[:, 0] + b[:, 2], 0, W), np.clip(b[:, 1] + b[:, 3], 0, H)
+    return np.stack([x1, y1, x2 - x1, y2 - y1], 1)
+
+
+def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, log=print,
+                 progress: bool = True) -> tuple[pd.DataFrame, list[float]]:
+    """Run ``detector.detect(rgb, min_score, max_per_image, nms_iou) -> (boxes_xywh (N, 4) px,
+    scores (N,), obj_ids (N,))`` on every image of the scenes. Returns the detections table (boxes
+    clipped to the image, labels that are not objects of the dataset dropped with a message) and
+    the seconds per image."""
+    from tqdm import tqdm
+
+    known = set(ds.models_info())
+    images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
+    if images:  # one untimed warm-up call: the runtime's first call allocates (seconds), not per-image work
+        detector.detect(ds.read_rgb(*images[0]), conf["min_score"], conf["max_per_image"], conf["nms_iou"])
+    parts, times, dropped = [], [], {}
+    for sid, im in tqdm(images, desc="detect", unit="image", disable=not progress, dynamic_ncols=True):
+        rgb = ds.read_rgb(sid, im)
+        t0 = time.perf_counter()
+        boxes, scores, labels = detector.detect(rgb, conf["min_score"], conf["max_per_image"], conf["nms_iou"])
+        dt = time.perf_counter() - t0
+        times.append(dt)
+        boxes = _clip(boxes, rgb.shape[1], rgb.shape[0])
+        scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+        labels = np.asarray(labels).reshape(-1).astype(np.int64)
+        if not (len(boxes) == len(scores) == len(labels)):
+            raise RuntimeError(f"detector returned {len(boxes)} boxes, {len(scores)} scores, {len(labels)} labels")
+        ok = (boxes[:, 2] > 0) & (boxes[:, 3] > 0) & np.isin(labels, sorted(known))
+        for o in labels[~np.isin(labels, sorted(known))]:
+            dropped[int(o)] = dropped.get(int(o), 0) + 1
+        n = int(ok.sum())
+        parts.append(pd.DataFrame({
+            "scene_id": np.full(n, sid, np.int64), "im_id": np.full(n, im, np.int64), "obj_id": labels[ok],
+            "score": scores[ok], "x": boxes[ok, 0], "y": boxes[ok, 1], "w": boxes[ok, 2], "h": boxes[ok, 3],
+            "time": np.full(n, dt), "segmentation": pd.Series([None] * n, dtype=object)}))
+    if dropped:
+        log("detect: dropped detections of labels that are not objects of the dataset: "
+            + ", ".join(f"obj_id {o} x{n}" for o, n in sorted(dropped.items())))
+    dets = pd.concat(parts, ignore_index=True) if parts else importers._empty_table()
+    return dets, times
+
+
+def _source(model, from_json, from_gt: bool) -> str:
+    given = [n for n, v in (("--model", model), ("--from-json", from_json)) if v is not None] + \
+        (["--from-gt"] if from_gt else [])
+    if len(given) > 1:
+        raise CosyError(f"give one source of detections, not {' and '.join(given)}")
+    if from_json is not None:
+        return "json"
+    if from_gt:
+        return "gt"
+    return "model"
+
+
+def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False, *,
+         scene_ids: list[int] | None = None, model: str | Path | None = None, from_json: str | Path | None = None,
+         coco_images: str | Path | None = None, from_gt: bool = False, log=print, progress: bool = True,
+         detector=None) -> dict | None:
+    """Run ``cosy detect``; returns the summary (None when ``out`` is up to date and skipped).
+
+    model: an exported detector ONNX (default: the shipped one; the source when neither
+    ``from_json`` nor ``from_gt`` is given). from_json: a BOP or COCO-results detections file;
+    coco_images: the COCO dataset file that maps its image ids (else image_id = scene_id * 1e6 +
+    im_id). from_gt: the visible GT boxes. detector: an object with ``detect(rgb, min_score,
+    max_per_image, nms_iou)`` used instead of loading ``model`` (tests, benchmarks).
+    """
+    t_start = time.perf_counter()
+    conf = resolve_conf(conf)
+    out = Path(out)
+    doc_path = sidecar_path(out)
+    source = _source(model, from_json, from_gt)
+    if coco_images is not None and source != "json":
+        raise CosyError("--coco-images goes with --from-json (it maps COCO image ids to BOP scene and image ids)")
+    ds = BopDataset(dataset, split)
+    scene_ids = _selected_scenes(ds, scene_ids)
+    if not ds.models_info_path.is_file():
+        raise CosyError("models_info.json not found (the objects' ids and sizes)", path=ds.models_info_path)
+
+    inputs = {"dataset": str(Path(ds.root).resolve()), "split": split, "scene_ids": scene_ids,
+              "models_info_sha1": file_sha1(ds.models_info_path), "source": source}
+    if source == "model":
+        if detector is None:
+            model = model_path(model, SHIPPED_DETECTOR, "detector", needed=True)
+            inputs["model"] = {"path": str(Path(model).resolve()), "sha1": file_sha1(model)}
+        else:
+            inputs["model"] = {"object": f"{type(detector).__module__}.{type(detector).__qualname__}"}
+    elif source == "json":
+        inputs["detections"] = {"path": str(Path(from_json).resolve()), "sha1": file_sha1(from_json)}
+        inputs["coco_images"] = None if coco_images is None else {"path": str(Path(coco_images).resolve()),
+                                                                  "sha1": file_sha1(coco_images)}
+    if reuse_existing_file(out, doc_path, "detect", overwrite, conf, inputs, log=log):
+        return None
+
+    times: list[float] = []
+    if source == "gt":
+        d = importers.detections_from_gt(ds, scene_ids, conf["min_visib_fract"])
+        dets = d.drop(columns=["gt_index"]).assign(time=-1.0, segmentation=None)
+        what = f"GT boxes (visib_fract >= {conf['min_visib_fract']:g})"
+    elif source == "json":
+        raw = importers.read_detections_any(from_json, ds, coco_images=coco_images)
+        n_raw = len(raw)
+        raw = raw[raw["scene_id"].isin(scene_ids).to_numpy()]
+        dets = keep_best(raw, conf["min_score"], conf["max_per_image"])
+        what = f"{raw.attrs.get('format', 'BOP').upper()} file {from_json}"
+        log(f"detect: {n_raw} detections read from {from_json}; {len(raw)} in the chosen scenes; kept {len(dets)} "
+            f"(score >= {conf['min_score']:g}, at most {conf['max_per_image']} per image)")
+    else:
+        if detector is None:
+            from .network import OnnxDetector  # lazy: onnxruntime is only needed here
+
+            providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" \
+                else ["CPUExecutionProvider"]
+            detector = OnnxDetector(model, providers)
+        dets, times = run_detector(detector, ds, scene_ids, conf, log=log, progress=progress)
+        dets = keep_best(dets, conf["min_score"], conf["max_per_image"])
+        what = f"detector {model if model is not None else inputs['model']['object']}"
+
+    dets = dets.sort_values(["scene_id", "im_id", "score"], ascending=[True, True, False], kind="stable")
+    dets = dets.reset_index(drop=True)
+    n_images = sum(len(ds.image_ids(s)) for s in scene_ids)
+    per_obj = dets.groupby("obj_id").size()
+    summary = {
+        "version": FORMAT_VERSION, "conf": conf, "inputs": inputs, "source": what, "images": n_images,
+        "images_with_detections": int(dets.groupby(["scene_id", "im_id"]).ngroups),
+        "detections": int(len(dets)),
+        "detections_per_object": {str(int(o)): int(n) for o, n in per_obj.items()},
+        "time_per_image_s": float(np.mean(times)) if times else None,
+        "time_per_image_median_s": float(np.median(times)) if times else None,
+        "time_total_s": round(time.perf_counter() - t_start, 3),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(doc_path, summary)
+    importers.write_detections(out, dets)  # last: a complete detections file means the stage finished
+    ms = f", {summary['time_per_image_s'] * 1e3:.0f} ms per image" if times else ""
+    log(f"detect: {len(dets)} detections in {summary['images_with_detections']} of {n_images} images from {what}"
+        f"{ms} -> {out}")
+    return summary

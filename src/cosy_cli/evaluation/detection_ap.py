@@ -1,0 +1,238 @@
+"""2D detection scores: COCO AP / AP50 / AP75 (computed by pycocotools) and label confusion.
+
+Ground truth: the visible boxes (``bbox_visib`` of scene_gt_info.json, px) of every GT instance
+of the chosen scenes. Instances with ``visib_fract >= min_visib_fract`` (BOP targets: 0.1) are
+the boxes to find; less visible ones (but with some visible pixel) are COCO "crowd" regions: a
+detection on them is ignored, neither a true nor a false positive, and missing them costs
+nothing. Every image of the scenes is an evaluation image, also one without objects (its
+detections are false positives). Category ids are the BOP obj_ids.
+
+As in COCO, an object that never appears in the ground truth gets no AP and its detections do
+not lower any other object's AP; :func:`confusion_matrix` shows what such mistakes (look-alike
+objects taking each other's labels) look like: for each GT box, the label of the detection that
+overlaps it best (IoU >= 0.5), whatever its label.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import CosyError
+from ..io.atomic import atomic_path, write_json
+from ..io.dataset import BopDataset
+
+MISSED = "missed"
+
+
+def _gt_boxes(ds: BopDataset, scene_ids) -> pd.DataFrame:
+    """Every GT instance with a visible box: scene_id, im_id, gt_index, obj_id, x, y, w, h, visib_fract."""
+    rows = []
+    for sid in scene_ids:
+        if not ds.has_gt(sid):
+            raise CosyError("detection scores need ground truth (scene_gt.json, scene_gt_info.json)",
+                            path=ds.scene_dir(sid))
+        gt, info = ds.scene_gt(sid), ds.scene_gt_info(sid)
+        for im in ds.image_ids(sid):
+            insts, infos = gt.get(im, []), info.get(im, [])
+            if len(insts) != len(infos):
+                raise CosyError(f"image {im}: {len(insts)} GT instances but {len(infos)} scene_gt_info entries",
+                                path=ds.scene_file(sid, "scene_gt_info"))
+            for i, (g, inf) in enumerate(zip(insts, infos)):
+                x, y, w, h = (float(v) for v in inf.bbox_visib)
+                if w > 0 and h > 0:
+                    rows.append((int(sid), int(im), i, int(g.obj_id), x, y, w, h, float(inf.visib_fract)))
+    return pd.DataFrame(rows, columns=["scene_id", "im_id", "gt_index", "obj_id", "x", "y", "w", "h", "visib_fract"])
+
+
+def _image_index(ds: BopDataset, scene_ids) -> dict[tuple[int, int], int]:
+    """(scene_id, im_id) -> COCO image id (1-based)."""
+    keys = [(int(s), int(i)) for s in scene_ids for i in ds.image_ids(s)]
+    return {k: n + 1 for n, k in enumerate(keys)}
+
+
+def _select(dets: pd.DataFrame, scene_ids) -> pd.DataFrame:
+    return dets[dets["scene_id"].isin([int(s) for s in scene_ids]).to_numpy()]
+
+
+def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract: float = 0.1) -> dict:
+    """COCO box AP of ``dets`` (the detections table: scene_id, im_id, obj_id, score, x, y, w, h
+    px) against the visible GT boxes of ``scene_ids`` (default all scenes of the split).
+
+    Returns {"AP" (IoU .50:.05:.95), "AP50", "AP75", "AR100", "per_object": {obj_id: {"AP",
+    "AP50", "gt", "detections"}}, "images", "gt", "gt_ignored", "detections", "min_visib_fract",
+    "tool"}; APs are in [0, 1], None for an object without GT boxes. Computed by pycocotools
+    (max 100 detections per image)."""
+    from importlib.metadata import version
+
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    scene_ids = ds.scene_ids if scene_ids is None else [int(s) for s in scene_ids]
+    gt = _gt_boxes(ds, scene_ids)
+    img = _image_index(ds, scene_ids)
+    dets = _select(dets, scene_ids)
+    missing = [k for k in zip(dets["scene_id"].astype(int), dets["im_id"].astype(int)) if k not in img]
+    if missing:
+        raise CosyError(f"{len(missing)} detection(s) name images that are not in their scene (first: scene "
+                        f"{missing[0][0]}, image {missing[0][1]})")
+    obj_ids = sorted(set(ds.models_info()) | set(gt["obj_id"].tolist()) | set(dets["obj_id"].astype(int).tolist()))
+    crowd = (gt["visib_fract"] < min_visib_fract).to_numpy()
+    gt_doc = {
+        "info": {"description": f"visible GT boxes of {ds.split_dir}"},
+        "images": [{"id": n, "file_name": f"{s:06d}/{i:06d}"} for (s, i), n in img.items()],
+        "categories": [{"id": int(o), "name": f"obj_{int(o):06d}"} for o in obj_ids],
+        "annotations": [{"id": n + 1, "image_id": img[(int(r.scene_id), int(r.im_id))], "category_id": int(r.obj_id),
+                         "bbox": [r.x, r.y, r.w, r.h], "area": r.w * r.h, "iscrowd": int(c)}
+                        for n, (r, c) in enumerate(zip(gt.itertuples(index=False), crowd))],
+    }
+    res = [{"image_id": img[(int(s), int(i))], "category_id": int(o), "bbox": [float(x), float(y), float(w), float(h)],
+            "score": float(sc)}
+           for s, i, o, sc, x, y, w, h in zip(dets["scene_id"], dets["im_id"], dets["obj_id"], dets["score"],
+                                              dets["x"], dets["y"], dets["w"], dets["h"])]
+    n_gt = gt[~crowd].groupby("obj_id").size()
+    n_det = dets.groupby("obj_id").size()
+    out = {"AP": 0.0, "AP50": 0.0, "AP75": 0.0, "AR100": 0.0, "per_object": {}, "images": len(img),
+           "gt": int((~crowd).sum()), "gt_ignored": int(crowd.sum()), "detections": len(res),
+           "min_visib_fract": float(min_visib_fract), "tool": f"pycocotools {version('pycocotools')}"}
+    per_ap = per_ap50 = {}
+    if res and (~crowd).any():
+        with contextlib.redirect_stdout(io.StringIO()):
+            coco_gt = COCO()
+            coco_gt.dataset = gt_doc
+            coco_gt.createIndex()
+            coco_dt = coco_gt.loadRes(res)
+            E = COCOeval(coco_gt, coco_dt, "bbox")
+            E.params.imgIds = sorted(img.values())
+            E.evaluate()
+            E.accumulate()
+            E.summarize()
+        s = E.stats
+        out.update(AP=float(s[0]), AP50=float(s[1]), AP75=float(s[2]), AR100=float(s[8]))
+        prec = E.eval["precision"]  # (T iou thresholds, R recall points, K categories, A areas, M max dets)
+        iou50 = int(np.argmin(np.abs(E.params.iouThrs - 0.5)))
+
+        def mean_valid(p):
+            p = p[p > -1]
+            return float(p.mean()) if p.size else None
+
+        per_ap = {int(c): mean_valid(prec[:, :, k, 0, -1]) for k, c in enumerate(E.params.catIds)}
+        per_ap50 = {int(c): mean_valid(prec[iou50, :, k, 0, -1]) for k, c in enumerate(E.params.catIds)}
+    for o in obj_ids:
+        g = int(n_gt.get(o, 0))
+        out["per_object"][str(o)] = {
+            "AP": per_ap.get(o) if g else None, "AP50": per_ap50.get(o) if g else None,
+            "gt": g, "detections": int(n_det.get(o, 0))}
+        if g and not res:
+            out["per_object"][str(o)].update(AP=0.0, AP50=0.0)
+    return out
+
+
+def confusion_matrix(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract: float = 0.1,
+                     iou_threshold: float = 0.5) -> pd.DataFrame:
+    """Label confusion of the detections: rows = GT obj_id (instances with visib_fract >=
+    ``min_visib_fract``), columns = the label of the detection (any label, any score) whose box
+    overlaps the GT box best, provided IoU >= ``iou_threshold``, and ``missed`` when none does.
+    Counts of GT instances; off-diagonal counts are look-alike mistakes."""
+    from ..detection.boxes import box_iou
+
+    scene_ids = ds.scene_ids if scene_ids is None else [int(s) for s in scene_ids]
+    gt = _gt_boxes(ds, scene_ids)
+    gt = gt[(gt["visib_fract"] >= min_visib_fract).to_numpy()]
+    dets = _select(dets, scene_ids)
+    det_groups = dets.groupby(["scene_id", "im_id"]).indices
+    pred = np.full(len(gt), -1, np.int64)
+    gxy = gt[["x", "y", "w", "h"]].to_numpy(np.float64)
+    dxy = dets[["x", "y", "w", "h"]].to_numpy(np.float64)
+    dlab = dets["obj_id"].to_numpy(np.int64)
+    for (sid, im), gidx in gt.groupby(["scene_id", "im_id"]).indices.items():
+        didx = det_groups.get((sid, im))
+        if didx is None:
+            continue
+        iou = box_iou(gxy[gidx], dxy[didx])  # (G, D)
+        best = iou.argmax(1)
+        ok = iou[np.arange(len(gidx)), best] >= iou_threshold
+        pred[gidx[ok]] = dlab[didx[best[ok]]]
+    labels = sorted(set(ds.models_info()) | set(gt["obj_id"].tolist()))
+    extra = sorted(set(pred[pred >= 0].tolist()) - set(labels))
+    cols = labels + extra + [MISSED]
+    pred_col = pd.Categorical(np.where(pred >= 0, pred, -1).astype(object), categories=labels + extra + [-1])
+    table = pd.crosstab(pd.Categorical(gt["obj_id"].to_numpy(), categories=labels), pred_col, dropna=False)
+    table.columns = cols
+    table.index = pd.Index(labels, name="gt_obj_id")
+    return table.astype(np.int64)
+
+
+def confusion_summary(table: pd.DataFrame) -> dict:
+    """Per GT object: {"gt", "correct", "other_label", "missed", "confused_with": {label: count}}."""
+    out = {}
+    for o, row in table.iterrows():
+        n = int(row.sum())
+        wrong = {str(c): int(v) for c, v in row.items() if c not in (o, MISSED) and v > 0}
+        out[str(o)] = {"gt": n, "correct": int(row.get(o, 0)), "other_label": int(sum(wrong.values())),
+                       "missed": int(row[MISSED]),
+                       "confused_with": dict(sorted(wrong.items(), key=lambda kv: -kv[1]))}
+    return out
+
+
+def main(dataset: str | Path, split: str, detections: str | Path, out: str | Path, *, scene_ids=None,
+         coco_images: str | Path | None = None, min_visib_fract: float = 0.1, log=print) -> dict:
+    """``cosy evaluate-detections``: COCO AP of a detections file (BOP or COCO results format,
+    checked against the dataset) and the label confusion; writes ``out/scores.json`` and
+    ``out/confusion.csv``. Returns the scores."""
+    from ..detection.importers import read_detections_any
+
+    ds = BopDataset(dataset, split)
+    all_scenes = ds.scene_ids
+    if scene_ids:
+        missing = sorted(set(int(s) for s in scene_ids) - set(all_scenes))
+        if missing:
+            raise CosyError(f"scene(s) {missing} not in the split (has {all_scenes})", path=ds.split_dir)
+        scene_ids = [int(s) for s in scene_ids]
+    else:
+        scene_ids = all_scenes
+    dets = read_detections_any(detections, ds, coco_images=coco_images)
+    uncovered = sorted(set(scene_ids) - set(dets["scene_id"].astype(int).tolist()))
+    if uncovered:
+        log(f"evaluate-detections: no detections at all in scene(s) {uncovered} (restrict with --scene-id if they "
+            "were not meant to be detected)")
+    scores = coco_ap(dets, ds, scene_ids, min_visib_fract)
+    table = confusion_matrix(dets, ds, scene_ids, min_visib_fract)
+    scores["confusion"] = confusion_summary(table)
+    scores["inputs"] = {"dataset": str(Path(dataset).resolve()), "split": split, "scene_ids": scene_ids,
+                        "detections": str(Path(detections).resolve())}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "confusion.csv") as tmp:
+        table.to_csv(tmp)
+    write_json(out / "scores.json", json.loads(json.dumps(scores)))
+    log(format_scores(scores))
+    log(f"evaluate-detections: -> {out / 'scores.json'}, {out / 'confusion.csv'}")
+    return scores
+
+
+def format_scores(scores: dict) -> str:
+    """A few lines for the terminal: AP, AP50, AP75, per-object AP50 and the label mistakes."""
+    lines = [f"AP {scores['AP']:.3f}  AP50 {scores['AP50']:.3f}  AP75 {scores['AP75']:.3f}  AR100 "
+             f"{scores['AR100']:.3f}  ({scores['images']} images, {scores['gt']} GT boxes + {scores['gt_ignored']} "
+             f"ignored (visib < {scores['min_visib_fract']:g}), {scores['detections']} detections; {scores['tool']})"]
+    per = scores["per_object"]
+    conf = scores.get("confusion", {})
+    lines.append(f"{'obj_id':>7s} {'GT':>5s} {'dets':>5s} {'AP50':>6s} {'AP':>6s}  label mistakes (GT -> detected as)")
+    for o, v in per.items():
+        if not v["gt"] and not v["detections"]:
+            continue
+        c = conf.get(o, {})
+        wrong = ", ".join(f"{lab} x{n}" for lab, n in c.get("confused_with", {}).items()) or "-"
+        missed = f"; missed {c['missed']}" if c.get("missed") else ""
+        lines.append(f"{o:>7s} {v['gt']:5d} {v['detections']:5d} {_ap(v['AP50'])} {_ap(v['AP'])}  {wrong}{missed}")
+    return "\n".join(lines)
+
+
+def _ap(a) -> str:
+    return "     -" if a is None else f"{a:6.3f}"
