@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export OMP_WAIT_POLICY ?= PASSIVE
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: all demo test sysdeps bench clean-venv sample-data
+.PHONY: all demo test sysdeps bench eval-sample clean-venv sample-data
 
 all: demo
 
@@ -37,16 +37,15 @@ $(VENV)/.installed: pyproject.toml
 $(VENV): $(VENV)/.installed
 
 DEMO_OUT ?= demo_out
+# The shipped detector when there is one, else the visible GT boxes.
+DEMO_DETECTIONS ?= $(if $(wildcard src/cosy_cli/assets/detector.onnx),,--from-gt)
 demo: $(VENV)/.installed
 	$(COSY) validate --dataset data_samples --split test
-	$(COSY) estimate --dataset data_samples --split test --from-gt --out $(DEMO_OUT)/candidates.csv
-	$(COSY) match --dataset data_samples --split test --candidates $(DEMO_OUT)/candidates.csv --out $(DEMO_OUT)/match
-	$(COSY) refine --dataset data_samples --split test --matches $(DEMO_OUT)/match --out $(DEMO_OUT)/refine
-	$(COSY) evaluate --dataset data_samples --split test --predictions $(DEMO_OUT)/candidates.csv \
-	  --out $(DEMO_OUT)/eval_single_view
-	$(COSY) evaluate --dataset data_samples --split test --predictions $(DEMO_OUT)/refine/predictions.csv \
-	  --scene-json $(DEMO_OUT)/refine/scene.json --out $(DEMO_OUT)/eval_multi_view
-	@echo "demo outputs in $(DEMO_OUT)/"
+	$(COSY) run --dataset data_samples --split test --out $(DEMO_OUT) $(DEMO_DETECTIONS)
+
+# Single view vs. groups of 4 and 8 views on the sample data (the paper's table) -> results/
+eval-sample: $(VENV)/.installed
+	$(PY) benchmarks/eval_sample.py --out results/eval_sample.md
 
 test: $(VENV)/.installed
 	$(PY) -m pytest tests

@@ -24,7 +24,8 @@ def cli() -> None:
 
 
 # Each module cosy_cli.cli.cmd_<name> defines COMMANDS, a list of click commands.
-COMMAND_MODULES = ["synth", "validate", "symmetries", "templates", "estimate", "match", "refine", "evaluate", "train"]
+COMMAND_MODULES = ["synth", "validate", "symmetries", "templates", "detect", "estimate", "match", "refine", "evaluate",
+                   "train", "run", "viz"]
 
 
 def _register() -> None:

@@ -349,8 +349,9 @@ def _clean(x):
 
 def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: str | Path, overwrite: bool = False, *,
          targets: str | Path | None = None, metrics=None, scene_json: str | Path | None = None,
-         models_dir: str | Path | None = None, log=print, progress: bool = True) -> dict | None:
-    """Run ``cosy evaluate``; returns the scores dict (None when skipped: ``out`` complete and up to date)."""
+         models_dir: str | Path | None = None, scene_ids=None, log=print, progress: bool = True) -> dict | None:
+    """Run ``cosy evaluate``; returns the scores dict (None when skipped: ``out`` complete and up to date).
+    ``scene_ids``: evaluate only these scenes (GT and targets of the others are ignored)."""
     t0 = time.time()
     conf = resolve_conf(conf)
     metrics = parse_metrics(metrics)
@@ -362,6 +363,8 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
               "scene_json": None if scene_json is None else str(Path(scene_json).resolve()),
               "scene_json_sha1": _sha1(scene_json), "models_dir": None if models_dir is None else str(models_dir),
               "metrics": metrics, "conf": conf}
+    if scene_ids is not None:
+        inputs["scene_ids"] = sorted(int(x) for x in scene_ids)
     if cache.reuse_existing_output(out, "evaluate", OUTPUT_FILES, overwrite, lambda: _stale_reasons(out, inputs), log):
         return None
 
@@ -382,6 +385,10 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
     if unknown_gt:
         raise CosyError(f"GT objects {unknown_gt} have no model in {models_path}", path=models_path)
     tgt, targets_desc = load_targets(ds, targets, gt, warn)
+    if scene_ids is not None:
+        keep = gt["scene_id"].isin(set(int(x) for x in scene_ids)).to_numpy()
+        gt, T_gt = gt[keep].reset_index(drop=True), T_gt[keep]
+        tgt = tgt[tgt["scene_id"].isin(set(int(x) for x in scene_ids))].reset_index(drop=True)
     n_steps = continuous_steps_for_max_step(conf["max_sym_disc_step"])
 
     est = res.table[["scene_id", "im_id", "obj_id", "score"]].copy()

@@ -1,0 +1,66 @@
+"""``cosy run``: the whole pipeline in one run folder, cached and resumable."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from .common import user_errors
+
+STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
+
+
+@click.command("run")
+@click.option("--dataset", required=True, type=click.Path(path_type=Path), help="BOP dataset folder.")
+@click.option("--split", default="test", show_default=True, help="Split folder.")
+@click.option("--scene-id", "scene_ids", type=int, multiple=True, help="Only these scenes (repeatable) [all].")
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="Run folder (run.json, scenes/, refine/predictions.csv, report.html).")
+@click.option("--config", "config", default="default", show_default=True,
+              help="default (best available), paper (networks, RGB only) or fast (fewer hypotheses, no VSD).")
+@click.option("--detections", type=click.Path(path_type=Path), default=None,
+              help="Detections made elsewhere (BOP detections JSON or COCO results).")
+@click.option("--coco-images", type=click.Path(path_type=Path), default=None,
+              help="COCO dataset JSON mapping the COCO image ids of --detections to BOP scene/image ids.")
+@click.option("--from-gt", is_flag=True, help="Visible GT boxes as detections (ablations).")
+@click.option("--model", type=click.Path(path_type=Path), default=None, help="Detector ONNX [the shipped one].")
+@click.option("--candidates", type=click.Path(path_type=Path), default=None,
+              help="Existing single-view candidates (BOP results CSV): start at match.")
+@click.option("--models", "models_dir", type=click.Path(path_type=Path), default=None,
+              help="Models folder [the dataset's models/].")
+@click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
+              help="Templates of the coarse step (built when missing) [RUN_DIR/templates].")
+@click.option("--views-per-group", type=click.IntRange(min=2), default=None,
+              help="Groups of N consecutive views per scene [all views of a scene in one group].")
+@click.option("--known-cameras", is_flag=True, default=None,
+              help="Use the cameras of scene_camera.json (a calibrated rig, a SLAM trajectory).")
+@click.option("--from", "first", type=click.Choice(STAGE_NAMES), default="detect", show_default=True,
+              help="First stage to run (earlier outputs are used as they are).")
+@click.option("--to", "last", type=click.Choice(STAGE_NAMES), default="viz", show_default=True,
+              help="Last stage to run.")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Scenes in parallel (spawned processes).")
+@click.option("--dask-scheduler", default=None, help="Run the scenes on this Dask cluster (tcp://HOST:PORT).")
+@click.option("--overwrite", is_flag=True, help="Rerun every stage even if it is up to date.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+@user_errors
+def run(dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
+        templates_dir, views_per_group, known_cameras, first, last, workers, dask_scheduler, overwrite, quiet) -> None:
+    """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
+
+    A stage whose settings, inputs and code did not change is skipped; a changed setting reruns
+    its stage and the ones after it; an interrupted run resumes where it stopped.
+    RUN_DIR/refine/predictions.csv is the final BOP results file, RUN_DIR/report.html the report.
+    """
+    from ..pipeline import run_stage
+
+    overrides = {"match": {"views_per_group": views_per_group, "known_cameras": known_cameras or None}}
+    run_stage.main(config, dataset, split, out, overwrite=overwrite, scene_ids=list(scene_ids) or None,
+                   detections=detections, coco_images=coco_images, from_gt=from_gt, model=model,
+                   candidates=candidates, models_dir=models_dir,
+                   templates_dir=templates_dir, overrides=overrides, first=first, last=last,
+                   workers=workers, dask_scheduler=dask_scheduler, log=click.echo, progress=not quiet)
+
+
+COMMANDS = [run]

@@ -1,0 +1,445 @@
+"""``cosy run``: detect -> estimate -> match -> refine per scene, then merge, evaluate and report.
+
+Layout of RUN_DIR::
+
+    run.json                      the manifest: dataset, scenes, config and resolved settings of
+                                  every stage, code version, per-stage status and timings
+    templates/                    templates of the training-free coarse step (built once)
+    scenes/000001/detections.json     BOP detections of the scene (detect)
+    scenes/000001/candidates.csv      single-view candidates, BOP results (estimate; + .json, .timing.csv)
+    scenes/000001/match/              cosy match output
+    scenes/000001/refine/             cosy refine output (scene.json, predictions.csv)
+    scenes/000001/.cosy/<stage>.json  unit records (see :mod:`cosy_cli.pipeline.units`)
+    detect/detections.json        all scenes' detections
+    estimate/candidates.csv       all scenes' single-view candidates
+    refine/predictions.csv        all scenes' refined predictions: the final BOP results file
+    refine/scene.json             all groups' cameras and objects
+    evaluate/single_view/, evaluate/multi_view/   cosy evaluate outputs (when the split has GT)
+    figures/, report.html         cosy viz
+
+Each scene is one task (serial, ``workers`` processes, or a Dask cluster); a unit whose settings,
+inputs and code did not change is skipped, so a changed setting reruns its stage and, through
+their inputs, the stages after it, and an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+from ..conf import merge_conf
+from ..errors import CosyError
+from ..io import atomic
+from ..io.cache import file_sha1
+from ..io.dataset import BopDataset
+from . import units
+
+STAGES = ("detect", "estimate", "match", "refine", "evaluate", "viz")
+SCENE_STAGES = ("detect", "estimate", "match", "refine")
+
+# Named run configurations: the settings given to each stage (a stage's named preset or a dict of
+# overrides over its default).
+CONFS: dict[str, dict] = {
+    "default": {"detect": "default", "estimate": "default", "match": "paper", "refine": None,
+                "evaluate": "bop19"},
+    # The paper's chain: networks on RGB, the paper's matching settings without the refit.
+    "paper": {"detect": "default", "estimate": "paper", "match": "paper-norefit", "refine": None,
+              "evaluate": "bop19"},
+    # Quicker: fewer template hypotheses, fewer ICP iterations, no VSD (BOP19 AR from MSSD/MSPD).
+    "fast": {"detect": "default", "estimate": {"top_k": 3, "icp_iterations": 10}, "match": "paper",
+             "refine": None, "evaluate": {"vsd": False}},
+}
+RUN_FORMAT = ("cosy-run", 1)
+
+
+def scene_dir(run_dir: Path, scene_id: int) -> Path:
+    return Path(run_dir) / "scenes" / f"{int(scene_id):06d}"
+
+
+def resolve_confs(config: str | dict | None = "default", **overrides) -> dict:
+    """The full settings of every stage for a named run configuration, with per-stage overrides
+    (``estimate={"top_k": 3}``, ``match={"views_per_group": 4}``; None ignored)."""
+    from ..detection import stage as detect_stage
+    from ..evaluation import evaluate_stage
+    from ..multiview import match_stage, refine_stage
+    from ..singleview import estimate_stage
+
+    base = merge_conf(CONFS, config, {}, default="default", what="run")
+    resolvers = {"detect": detect_stage.resolve_conf, "estimate": estimate_stage.resolve_conf,
+                 "match": match_stage.resolve_conf, "refine": refine_stage.resolve_conf,
+                 "evaluate": evaluate_stage.resolve_conf}
+    out = {}
+    for stage, resolve in resolvers.items():
+        extra = {k: v for k, v in (overrides.get(stage) or {}).items() if v is not None}
+        out[stage] = resolve(base.get(stage), **extra)
+    return json.loads(json.dumps(out))
+
+
+# ------------------------------------------------------------------------------------------
+# one scene
+# ------------------------------------------------------------------------------------------
+def _digest_of(path) -> str | None:
+    return None if path is None else units.path_digest(path)
+
+
+def run_scene(task: dict) -> dict:
+    """Run the scene stages of one scene (a picklable task for process pools and Dask).
+
+    task: run_dir, dataset, split, scene_id, confs, source ("gt" | "model" | "json" |
+    "candidates"), source_file, coco_images, models_dir, templates_dir, first, last (stage names),
+    force (stages to rerun regardless). Returns {"scene_id", "units": {stage: {"ran", "time_s"}}}.
+    """
+    if task.get("single_thread"):
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        try:
+            import torch
+
+            torch.set_num_threads(1)
+        except ImportError:  # pragma: no cover
+            pass
+    run_dir, sid = Path(task["run_dir"]), int(task["scene_id"])
+    sdir = scene_dir(run_dir, sid)
+    sdir.mkdir(parents=True, exist_ok=True)
+    dataset, split, confs = task["dataset"], task["split"], task["confs"]
+    first, last = STAGES.index(task["first"]), STAGES.index(task["last"])
+    force = set(task.get("force") or ())
+    log_path = sdir / "log.txt"
+
+    def log(msg: str) -> None:
+        with open(log_path, "a") as f:
+            f.write(msg.rstrip() + "\n")
+
+    def wanted(stage: str) -> bool:
+        return first <= STAGES.index(stage) <= last
+
+    def need(rel: str, stage: str) -> Path:
+        p = sdir / rel
+        if not p.exists():
+            raise CosyError(f"scene {sid}: {rel} is missing; run from an earlier stage than "
+                            f"'{task['first']}' (it is made by {stage})", path=p)
+        return p
+
+    done: dict[str, dict] = {}
+    dets, cands = sdir / "detections.json", sdir / "candidates.csv"
+    if task["source"] == "candidates":
+        if wanted("detect") or wanted("estimate"):
+            src = Path(task["source_file"])
+            key = units.unit_key("candidates", None, {"file": file_sha1(src), "scene": sid})
+
+            def copy_candidates():
+                from ..io import bop
+
+                res = bop.read_results(src)
+                sel = (res.table["scene_id"] == sid).to_numpy()
+                bop.write_results(cands, bop.PoseResults(res.table[sel].reset_index(drop=True), res.T_cam_obj[sel]))
+
+            ran, dt = units.run_unit(sdir, "estimate", key, ["candidates.csv"], copy_candidates, "estimate" in force)
+            done["estimate"] = {"ran": ran, "time_s": dt}
+    else:
+        if wanted("detect"):
+            from ..detection import stage as detect_stage
+
+            src = task.get("source_file")
+            inputs = {"source": task["source"], "file": _digest_of(src), "coco_images": _digest_of(task.get("coco_images")),
+                      "scene": sid, "dataset": str(dataset), "split": split}
+            if task["source"] == "gt":
+                inputs["gt_info"] = _digest_of(BopDataset(dataset, split).scene_file(sid, "scene_gt_info"))
+            key = units.unit_key("detect", confs["detect"], inputs)
+            ran, dt = units.run_unit(sdir, "detect", key, ["detections.json"], lambda: detect_stage.main(
+                confs["detect"], dataset, split, dets, overwrite=True, scene_ids=[sid],
+                model=src if task["source"] == "model" else None,
+                from_json=src if task["source"] == "json" else None, coco_images=task.get("coco_images"),
+                from_gt=task["source"] == "gt", log=log, progress=False), "detect" in force)
+            done["detect"] = {"ran": ran, "time_s": dt}
+        if wanted("estimate"):
+            from ..singleview import estimate_stage
+
+            need("detections.json", "detect")
+            key = units.unit_key("estimate", confs["estimate"], {
+                "detections": _digest_of(dets), "models": _digest_of(Path(task["models_dir"]) / "models_info.json"),
+                "scene": sid, "dataset": str(dataset), "split": split})
+            outs = ["candidates.csv", "candidates.json", "candidates.timing.csv"]
+            ran, dt = units.run_unit(sdir, "estimate", key, outs, lambda: estimate_stage.main(
+                confs["estimate"], dataset, split, cands, overwrite=True, scene_ids=[sid], detections=dets,
+                models_dir=task["models_dir"], templates_dir=task["templates_dir"], log=log, progress=False),
+                "estimate" in force)
+            done["estimate"] = {"ran": ran, "time_s": dt}
+    if wanted("match"):
+        from ..multiview import match_stage
+
+        need("candidates.csv", "estimate")
+        key = units.unit_key("match", confs["match"], {"candidates": _digest_of(cands), "dataset": str(dataset),
+                                                       "split": split})
+        ran, dt = units.run_unit(sdir, "match", key, ["match"], lambda: match_stage.main(
+            confs["match"], dataset, split, cands, sdir / "match", overwrite=True, log=log, progress=False),
+            "match" in force)
+        done["match"] = {"ran": ran, "time_s": dt}
+    if wanted("refine"):
+        from ..multiview import refine_stage
+
+        need("match", "match")
+        key = units.unit_key("refine", confs["refine"], {"match": _digest_of(sdir / "match"), "dataset": str(dataset),
+                                                         "split": split})
+        ran, dt = units.run_unit(sdir, "refine", key, ["refine"], lambda: refine_stage.main(
+            confs["refine"], dataset, split, sdir / "match", sdir / "refine", overwrite=True, log=log, progress=False),
+            "refine" in force)
+        done["refine"] = {"ran": ran, "time_s": dt}
+    return {"scene_id": sid, "units": done}
+
+
+# ------------------------------------------------------------------------------------------
+# merging the scenes
+# ------------------------------------------------------------------------------------------
+def merge_csv(parts: list[Path], out: Path) -> None:
+    """Concatenate CSV files with the same header (written atomically)."""
+    header, lines = None, []
+    for p in parts:
+        text = p.read_text().splitlines()
+        if not text:
+            continue
+        if header is None:
+            header = text[0]
+        elif text[0] != header:
+            raise CosyError(f"header differs from {parts[0]}", path=p)
+        lines.extend(t for t in text[1:] if t)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic.atomic_path(out) as tmp:
+        Path(tmp).write_text("\n".join([header or ""] + lines) + "\n")
+
+
+def merge_detections(parts: list[Path], out: Path) -> None:
+    data = []
+    for p in parts:
+        data.extend(json.loads(p.read_text()))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic.write_json(out, data, indent=None)
+
+
+def merge_scene_json(parts: list[Path], out: Path) -> None:
+    """One refine ``scene.json`` holding the groups of every scene (settings of the first part;
+    each scene's summary under ``scene_summaries``)."""
+    docs = [json.loads(p.read_text()) for p in parts]
+    merged = {k: v for k, v in docs[0].items() if k not in ("groups", "summary", "matches", "groups_sha1")}
+    merged["matches"] = [d.get("matches") for d in docs]
+    merged["scene_summaries"] = {str(g["scene_id"]): d.get("summary") for d in docs for g in d["groups"][:1]}
+    merged["groups"] = [g for d in docs for g in d["groups"]]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic.write_json(out, merged)
+
+
+# ------------------------------------------------------------------------------------------
+# the run
+# ------------------------------------------------------------------------------------------
+def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progress: bool, log) -> list[dict]:
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), desc="scenes", unit="scene", disable=not progress or None, dynamic_ncols=True)
+    results = []
+    try:
+        if dask_scheduler:
+            from distributed import Client, as_completed
+
+            with Client(dask_scheduler) as client:
+                futures = client.map(run_scene, tasks, pure=False)
+                for fut in as_completed(futures):
+                    results.append(fut.result())
+                    bar.update(1)
+        elif workers > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
+
+            # spawned, not forked: EGL/OpenGL contexts and torch threads do not survive a fork
+            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+                futs = [pool.submit(run_scene, {**t, "single_thread": True}) for t in tasks]
+                for fut in done_first(futs):
+                    results.append(fut.result())
+                    bar.update(1)
+        else:
+            for t in tasks:
+                results.append(run_scene(t))
+                bar.update(1)
+    finally:
+        bar.close()
+    return sorted(results, key=lambda r: r["scene_id"])
+
+
+def main(config: str | dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False, *,
+         scene_ids: list[int] | None = None, detections: str | Path | None = None, coco_images=None,
+         from_gt: bool = False, model: str | Path | None = None, candidates: str | Path | None = None,
+         models_dir: str | Path | None = None, templates_dir: str | Path | None = None,
+         overrides: dict | None = None, first: str = "detect",
+         last: str = "viz", workers: int = 1, dask_scheduler: str | None = None, log: Callable[[str], None] = print,
+         progress: bool = True) -> dict:
+    """Run the pipeline into the run folder ``out``; returns the manifest (also ``out/run.json``).
+
+    Sources of the first stage, at most one: ``detections`` (a BOP or COCO detections file),
+    ``from_gt`` (visible GT boxes), ``candidates`` (single-view candidates, BOP results CSV: starts
+    at match), else ``model`` (a detector ONNX, default the shipped one). ``first``/``last``:
+    the stages to run (earlier stages' outputs are used as they are). ``overwrite`` reruns
+    every stage. ``overrides``: per-stage settings over the named ``config``. ``templates_dir``:
+    templates of the coarse step, built when missing (default ``out/templates``).
+    """
+    t_start = time.perf_counter()
+    if sum(x is not None and x is not False for x in (detections, candidates, model)) + bool(from_gt) > 1:
+        raise CosyError("give at most one of --detections, --from-gt, --candidates and --model")
+    for name, v in (("--from", first), ("--to", last)):
+        if v not in STAGES:
+            raise CosyError(f"{name}: unknown stage {v!r} (stages: {', '.join(STAGES)})")
+    if STAGES.index(first) > STAGES.index(last):
+        raise CosyError(f"--from {first} comes after --to {last}")
+    out = Path(out).resolve()
+    if out.exists() and not out.is_dir():
+        raise CosyError("exists and is not a folder", path=out)
+    manifest_path = out / "run.json"
+    if out.is_dir() and any(out.iterdir()) and not manifest_path.is_file():
+        raise CosyError("exists, is not empty and is not a cosy run folder (no run.json)", path=out)
+    ds = BopDataset(dataset, split)
+    dataset = Path(dataset).resolve()
+    all_scenes = ds.scene_ids
+    scene_ids = list(all_scenes) if scene_ids is None else [int(s) for s in scene_ids]
+    missing = sorted(set(scene_ids) - set(all_scenes))
+    if missing:
+        raise CosyError(f"scene(s) {missing} not in the split (scenes: {all_scenes})", path=ds.split_dir)
+    for f in (detections, candidates, model, coco_images):
+        if f is not None and not Path(f).is_file():
+            raise CosyError("file not found", path=f)
+    confs = resolve_confs(config, **(overrides or {}))
+    models_dir = Path(models_dir).resolve() if models_dir is not None else ds.models_dir.resolve()
+    source = ("candidates" if candidates is not None else "json" if detections is not None
+              else "gt" if from_gt else "model")
+    source_file = candidates or detections or model
+    if source == "model" and source_file is None:
+        from ..detection.stage import SHIPPED_DETECTOR
+
+        if not SHIPPED_DETECTOR.is_file():
+            raise CosyError(f"no detector model was given (--model) and none is shipped (expected {SHIPPED_DETECTOR}); "
+                            "use --from-gt, --detections FILE or --candidates FILE, or train one with "
+                            "`cosy train detector` + `cosy export`")
+        source_file = SHIPPED_DETECTOR
+    source_file = None if source_file is None else str(Path(source_file).resolve())
+    config_name = config if isinstance(config, str) else "custom"
+    has_gt = all(ds.has_gt(s) for s in scene_ids)
+    if STAGES.index(first) > STAGES.index("refine") and not (out / "refine" / "predictions.csv").is_file():
+        raise CosyError(f"--from {first}: no refine/predictions.csv in the run folder yet", path=out)
+
+    out.mkdir(parents=True, exist_ok=True)
+    old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {}
+    manifest = {"format": RUN_FORMAT[0], "version": RUN_FORMAT[1], "code_version": units.code_version(),
+                "dataset": str(dataset), "split": split, "scene_ids": scene_ids, "config": config_name,
+                "confs": confs, "source": {"kind": source, "file": source_file},
+                "models_dir": str(models_dir), "status": "running", "stages": old.get("stages", {})}
+    atomic.write_json(manifest_path, manifest)
+    force = set(STAGES) if overwrite else set()
+
+    # templates once, before the scenes run in parallel
+    templates_dir = Path(templates_dir).resolve() if templates_dir is not None else out / "templates"
+    if source != "candidates" and STAGES.index(first) <= STAGES.index("estimate") <= STAGES.index(last):
+        from ..singleview import estimate_stage
+
+        if estimate_stage.uses_templates(confs["estimate"]):
+            estimate_stage.ensure_templates(models_dir, templates_dir, log=lambda m: None)
+
+    tasks = [{"run_dir": str(out), "dataset": str(dataset), "split": split, "scene_id": s, "confs": confs,
+              "source": source, "source_file": source_file,
+              "coco_images": None if coco_images is None else str(Path(coco_images).resolve()),
+              "models_dir": str(models_dir), "templates_dir": str(templates_dir), "first": first,
+              "last": min(last, "refine", key=STAGES.index), "force": sorted(force)}
+             for s in scene_ids]
+    stage_times: dict[str, dict] = {}
+    if STAGES.index(first) <= STAGES.index("refine"):
+        log(f"run: {len(tasks)} scene(s) of {ds.split_dir}, config {config_name}, "
+            f"{'dask ' + dask_scheduler if dask_scheduler else f'{workers} worker(s)'} -> {out}")
+        results = _execute(tasks, workers, dask_scheduler, progress, log)
+        for stage in SCENE_STAGES:
+            rs = [r["units"][stage] for r in results if stage in r["units"]]
+            if rs:
+                stage_times[stage] = {"status": "done" if any(r["ran"] for r in rs) else "skipped",
+                                      "scenes_run": sum(r["ran"] for r in rs), "scenes": len(rs),
+                                      "time_s": round(sum(r["time_s"] for r in rs), 3)}
+
+    # merge the scenes into the run-wide files
+    sdirs = [scene_dir(out, s) for s in scene_ids]
+    merged = []
+    for rel, dst, fn in (("detections.json", out / "detect" / "detections.json", merge_detections),
+                         ("candidates.csv", out / "estimate" / "candidates.csv", merge_csv),
+                         ("refine/predictions.csv", out / "refine" / "predictions.csv", merge_csv),
+                         ("refine/scene.json", out / "refine" / "scene.json", merge_scene_json)):
+        parts = [d / rel for d in sdirs]
+        if all(p.is_file() for p in parts) and parts:
+            fn(parts, dst)
+            merged.append(str(dst.relative_to(out)))
+
+    evals = {}
+    if STAGES.index(first) <= STAGES.index("evaluate") <= STAGES.index(last):
+        if not has_gt:
+            log("run: the split has no GT for every scene; evaluate skipped")
+            stage_times["evaluate"] = {"status": "not run (no GT)", "time_s": 0.0}
+        else:
+            from ..evaluation import evaluate_stage
+
+            t_ev, ran_any = 0.0, False
+            for name, pred, sj in (("single_view", out / "estimate" / "candidates.csv", None),
+                                   ("multi_view", out / "refine" / "predictions.csv", out / "refine" / "scene.json")):
+                if not pred.is_file():
+                    continue
+                key = units.unit_key("evaluate", confs["evaluate"], {
+                    "predictions": _digest_of(pred), "scene_json": _digest_of(sj), "scenes": scene_ids,
+                    "dataset": str(dataset), "split": split})
+                ran, dt = units.run_unit(out / "evaluate", name, key, [name], lambda: evaluate_stage.main(
+                    confs["evaluate"], dataset, split, pred, out / "evaluate" / name, overwrite=True, scene_json=sj,
+                    models_dir=models_dir, scene_ids=scene_ids, log=lambda m: None, progress=progress),
+                    "evaluate" in force)
+                t_ev += dt
+                ran_any |= ran
+                evals[name] = json.loads((out / "evaluate" / name / "scores.json").read_text())
+            stage_times["evaluate"] = {"status": "done" if ran_any else "skipped", "time_s": round(t_ev, 3)}
+
+    if STAGES.index(first) <= STAGES.index("viz") <= STAGES.index(last):
+        t0 = time.perf_counter()
+        try:
+            from .. import viz
+        except ImportError:
+            viz = None
+        if viz is not None and hasattr(viz, "main"):
+            viz.main(out, overwrite="viz" in force, log=lambda m: None, progress=progress)
+            stage_times["viz"] = {"status": "done", "time_s": round(time.perf_counter() - t0, 3)}
+
+    manifest["stages"] = {**manifest["stages"], **stage_times}
+    manifest["merged"] = merged
+    manifest["metrics"] = {name: {k: s.get(k) for k in SUMMARY_METRICS if k in s} for name, s in evals.items()}
+    manifest["status"] = "done"
+    manifest["time_s"] = round(time.perf_counter() - t_start, 3)
+    atomic.write_json(manifest_path, manifest)
+    for line in summary_lines(manifest, out):
+        log(line)
+    return manifest
+
+
+SUMMARY_METRICS = ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
+                   "bop19_average_recall_mspd", "bop19_average_recall_mssd_mspd", "auc_adds", "recall_adds_0.1d")
+
+
+def summary_lines(manifest: dict, out: Path) -> list[str]:
+    """The terminal summary: stages (status, time) and the metrics, single view vs multi-view."""
+    lines = ["", f"{'stage':<10} {'status':<18} {'time':>9}"]
+    for stage in STAGES:
+        st = manifest["stages"].get(stage)
+        if st:
+            n = f" ({st['scenes_run']}/{st['scenes']} scenes)" if "scenes" in st else ""
+            lines.append(f"{stage:<10} {st['status'] + n:<18} {st['time_s']:>8.1f}s")
+    m = manifest.get("metrics") or {}
+    if m:
+        names = list(m)
+        lines += ["", f"{'metric':<32}" + "".join(f"{n:>13}" for n in names)]
+        for k in SUMMARY_METRICS:
+            vals = [m[n].get(k) for n in names]
+            if any(v is not None for v in vals):
+                lines.append(f"{k:<32}" + "".join(f"{v:>13.3f}" if v is not None else f"{'-':>13}" for v in vals))
+    lines.append("")
+    lines.append(f"final predictions: {out / 'refine' / 'predictions.csv'}")
+    if (out / "report.html").is_file():
+        lines.append(f"report: {out / 'report.html'}")
+    return lines

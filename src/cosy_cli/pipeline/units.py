@@ -1,0 +1,106 @@
+"""Units of work of a run and their records: the cache of ``cosy run``.
+
+A unit (one stage on one scene, or one run-wide step) is up to date when its record
+``<folder>/.cosy/<unit>.json`` holds the same key — a hash of the stage settings, the hashes of its
+input files and the code version — and every output it lists still exists with the recorded hash.
+The record is written (atomically) only after the stage's own atomic outputs are in place, so a
+unit interrupted anywhere is simply run again; an output without a current record is never trusted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable, Iterable
+
+from .. import __version__
+from ..io import atomic
+from ..io.cache import file_sha1
+
+RECORDS = ".cosy"
+
+
+@lru_cache(maxsize=1)
+def code_version() -> str:
+    """``<version>+<git commit>`` when running from a git checkout, else the package version."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).parent,
+                              capture_output=True, text=True, timeout=5)
+        if head.returncode == 0 and head.stdout.strip():
+            return f"{__version__}+{head.stdout.strip()}"
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return __version__
+
+
+def path_digest(path: str | Path) -> str | None:
+    """sha1 of a file, or of a folder's files (names and contents, records excluded); None if absent."""
+    path = Path(path)
+    if path.is_file():
+        return file_sha1(path)
+    if not path.is_dir():
+        return None
+    h = hashlib.sha1()
+    for f in sorted(p for p in path.rglob("*") if p.is_file() and RECORDS not in p.relative_to(path).parts):
+        h.update(str(f.relative_to(path)).encode())
+        h.update(file_sha1(f).encode())
+    return h.hexdigest()
+
+
+def unit_key(stage: str, conf, inputs: dict) -> str:
+    """The key of a unit: its stage, settings, input digests (``{name: digest or value}``) and code."""
+    doc = {"stage": stage, "conf": conf, "inputs": inputs, "code": code_version()}
+    return hashlib.sha1(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def record_path(folder: Path, unit: str) -> Path:
+    return Path(folder) / RECORDS / f"{unit}.json"
+
+
+def is_current(folder: Path, unit: str, key: str) -> bool:
+    """True when the unit's record has ``key`` and all its outputs exist unchanged."""
+    try:
+        rec = json.loads(record_path(folder, unit).read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    if rec.get("key") != key:
+        return False
+    return all(path_digest(Path(folder) / rel) == digest for rel, digest in rec.get("outputs", {}).items())
+
+
+def read_record(folder: Path, unit: str) -> dict | None:
+    try:
+        return json.loads(record_path(folder, unit).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def write_record(folder: Path, unit: str, key: str, outputs: Iterable[str], **extra) -> dict:
+    """Record a finished unit: its key and the digest of each output (paths relative to ``folder``)."""
+    folder = Path(folder)
+    rec = {"key": key, "outputs": {rel: path_digest(folder / rel) for rel in outputs}, **extra}
+    record_path(folder, unit).parent.mkdir(parents=True, exist_ok=True)
+    atomic.write_json(record_path(folder, unit), rec)
+    return rec
+
+
+def forget(folder: Path, unit: str) -> None:
+    record_path(folder, unit).unlink(missing_ok=True)
+
+
+def run_unit(folder: Path, unit: str, key: str, outputs: list[str], work: Callable[[], object],
+             force: bool = False) -> tuple[bool, float]:
+    """Run ``work`` unless the unit is current (and not ``force``); returns (ran, seconds spent now)."""
+    import time
+
+    if not force and is_current(folder, unit, key):
+        return False, 0.0
+    forget(folder, unit)
+    t0 = time.perf_counter()
+    work()
+    dt = time.perf_counter() - t0
+    write_record(folder, unit, key, outputs, time_s=round(dt, 3))
+    return True, dt
