@@ -6,15 +6,13 @@ from pathlib import Path
 
 import click
 
-from .common import user_errors
+from .common import resolve_scenes, scene_options, user_errors
 
 STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 
 
 @click.command("run")
-@click.option("--dataset", required=True, type=click.Path(path_type=Path), help="BOP dataset folder.")
-@click.option("--split", default="test", show_default=True, help="Split folder.")
-@click.option("--scene-id", "scene_ids", type=int, multiple=True, help="Only these scenes (repeatable) [all].")
+@scene_options
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="Run folder (run.json, scenes/, refine/predictions.csv, report.html).")
 @click.option("--config", "config", default="default", show_default=True,
@@ -45,7 +43,7 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 @click.option("--overwrite", is_flag=True, help="Rerun every stage even if it is up to date.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @user_errors
-def run(dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
+def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
         templates_dir, views_per_group, known_cameras, first, last, workers, dask_scheduler, overwrite, quiet) -> None:
     """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
 
@@ -55,8 +53,10 @@ def run(dataset, split, scene_ids, out, config, detections, coco_images, from_gt
     """
     from ..pipeline import run_stage
 
+    dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
+
     overrides = {"match": {"views_per_group": views_per_group, "known_cameras": known_cameras or None}}
-    run_stage.main(config, dataset, split, out, overwrite=overwrite, scene_ids=list(scene_ids) or None,
+    run_stage.main(config, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                    detections=detections, coco_images=coco_images, from_gt=from_gt, model=model,
                    candidates=candidates, models_dir=models_dir,
                    templates_dir=templates_dir, overrides=overrides, first=first, last=last,

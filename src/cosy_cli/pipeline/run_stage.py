@@ -439,7 +439,8 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
             if any(v is not None for v in vals):
                 lines.append(f"{k:<32}" + "".join(f"{v:>13.3f}" if v is not None else f"{'-':>13}" for v in vals))
     lines.append("")
-    lines.append(f"final predictions: {out / 'refine' / 'predictions.csv'}")
+    if (out / "refine" / "predictions.csv").is_file():
+        lines.append(f"final predictions: {out / 'refine' / 'predictions.csv'}")
     if (out / "report.html").is_file():
         lines.append(f"report: {out / 'report.html'}")
     return lines
