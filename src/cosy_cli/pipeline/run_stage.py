@@ -404,8 +404,11 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
         except ImportError:
             viz = None
         if viz is not None and hasattr(viz, "main"):
-            viz.main(out, overwrite="viz" in force, log=lambda m: None, progress=progress)
-            stage_times["viz"] = {"status": "done", "time_s": round(time.perf_counter() - t0, 3)}
+            stage_times["viz"] = {"status": "done", "time_s": 0.0}
+            preview = {**manifest, "stages": {**manifest["stages"], **stage_times}, "status": "done"}
+            r = viz.main(out, overwrite="viz" in force, log=lambda m: None, progress=progress, manifest=preview)
+            stage_times["viz"] = {"status": "done" if r.get("made") else "skipped",
+                                  "time_s": round(time.perf_counter() - t0, 3)}
 
     manifest["stages"] = {**manifest["stages"], **stage_times}
     manifest["merged"] = merged
