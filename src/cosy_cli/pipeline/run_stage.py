@@ -36,6 +36,7 @@ from ..io import atomic
 from ..io.cache import file_sha1
 from ..io.dataset import BopDataset
 from . import units
+from .layout import RUN_FORMAT, scene_dir
 
 STAGES = ("detect", "estimate", "match", "refine", "evaluate", "viz")
 SCENE_STAGES = ("detect", "estimate", "match", "refine")
@@ -52,11 +53,6 @@ CONFS: dict[str, dict] = {
     "fast": {"detect": "default", "estimate": {"top_k": 3, "icp_iterations": 10}, "match": "paper",
              "refine": None, "evaluate": {"vsd": False}},
 }
-RUN_FORMAT = ("cosy-run", 1)
-
-
-def scene_dir(run_dir: Path, scene_id: int) -> Path:
-    return Path(run_dir) / "scenes" / f"{int(scene_id):06d}"
 
 
 def resolve_confs(config: str | dict | None = "default", **overrides) -> dict:

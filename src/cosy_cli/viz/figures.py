@@ -35,8 +35,8 @@ from ..errors import CosyError
 from ..geometry.poses import invert
 from ..io import atomic, bop
 from ..io.dataset import BopDataset
+from ..pipeline.layout import RUN_FORMAT, scene_dir
 
-RUN_FORMAT = "cosy-run"
 MAX_PNG_BYTES = 1_500_000
 PANEL_WIDTH_IN = 1.75  # inches per view panel
 DPI = 150
@@ -82,8 +82,8 @@ def read_run(run_dir: str | Path) -> dict:
         raise CosyError(f"cannot read ({e})", path=path) from None
     if not isinstance(doc, dict):
         raise CosyError("expected a JSON object (the manifest of cosy run)", path=path)
-    if "format" in doc and doc["format"] != RUN_FORMAT:
-        raise CosyError(f"expected format {RUN_FORMAT!r}, got {doc['format']!r}", path=path)
+    if "format" in doc and doc["format"] != RUN_FORMAT[0]:
+        raise CosyError(f"expected format {RUN_FORMAT[0]!r}, got {doc['format']!r}", path=path)
     for k in ("dataset", "split", "scene_ids"):
         if k not in doc:
             raise CosyError(f"missing key {k!r} (expected dataset, split, scene_ids)", path=path)
@@ -100,10 +100,6 @@ def read_run(run_dir: str | Path) -> dict:
     out = dict(doc)
     out["dataset"] = ds
     return out
-
-
-def scene_dir(run_dir: str | Path, scene_id: int) -> Path:
-    return Path(run_dir) / "scenes" / f"{int(scene_id):06d}"
 
 
 def _load_json(path: Path) -> dict | None:
