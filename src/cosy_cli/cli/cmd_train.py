@@ -1,5 +1,6 @@
-"""``cosy train {coarse,refiner}`` and ``cosy export``: train a render-and-compare network on
-on-the-fly renders of a dataset's objects, and export it to ONNX with a model card.
+"""``cosy train {coarse,refiner,detector}`` and ``cosy export``: train a render-and-compare
+network or the 2D detector on on-the-fly renders of a dataset's objects, and export it to ONNX
+with a model card.
 
 Imports stay light: the training module is imported when the command runs.
 """
@@ -26,21 +27,25 @@ def _crop(ctx, param, value):
 
 
 @click.command("train")
-@click.argument("kind", type=click.Choice(["coarse", "refiner"]))
+@click.argument("kind", type=click.Choice(["coarse", "refiner", "detector"]))
 @click.option("--dataset", required=True, type=click.Path(path_type=Path),
               help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered.")
 @click.option("--split", default="train_pbr", show_default=True,
               help="Split the run is recorded for (training uses on-the-fly renders, not the split's images).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="Run folder: checkpoint.pt, config.json, log.csv, loss.png.")
-@click.option("--backbone", type=click.Choice(BACKBONES), default=None, help="EfficientNet backbone [efficientnet-b0].")
-@click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96].")
+@click.option("--backbone", type=click.Choice(BACKBONES), default=None,
+              help="EfficientNet backbone [efficientnet-b0] (pose networks).")
+@click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
+@click.option("--input", "input_size", callback=_crop, default=None,
+              help="Detector input size WIDTHxHEIGHT px, multiples of 16 [320x240] (detector only).")
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
-@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32].")
-@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None, help="Adam learning rate [3e-4].")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32; detector 16].")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Adam learning rate [3e-4; detector 1e-3].")
 @click.option("--warmup", type=click.IntRange(min=0), default=None, help="Linear warm-up steps [500].")
 @click.option("--schedule", type=click.Choice(["constant", "cosine"]), default=None,
-              help="LR after warm-up [constant].")
+              help="LR after warm-up [constant; detector cosine].")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default=None,
               help="cuda if available (falls back to the CPU with a warning) [cpu].")
 @click.option("--workers", type=click.IntRange(min=0), default=None,
@@ -51,14 +56,30 @@ def _crop(ctx, param, value):
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
-def train(kind, dataset, split, out, backbone, crop, iterations, batch_size, lr, warmup, schedule, device, workers,
-          seed, checkpoint_every, resume, overwrite, quiet) -> None:
-    """Train the KIND (coarse or refiner) PoseNet on domain-randomised renders of the dataset's objects.
+def train(kind, dataset, split, out, backbone, crop, input_size, iterations, batch_size, lr, warmup, schedule, device,
+          workers, seed, checkpoint_every, resume, overwrite, quiet) -> None:
+    """Train the KIND (coarse or refiner PoseNet, or the 2D detector) on domain-randomised renders
+    of the dataset's objects.
 
-    Disentangled symmetric loss (mm), Adam with warm-up; the refiner's input-pose noise follows a
-    curriculum from 0.3 to 1.0 of its full size over the first half of --iterations. Resumable:
-    Ctrl-C saves a checkpoint; --resume continues (with a larger --iterations to train longer).
+    Pose networks: disentangled symmetric loss (mm), Adam with warm-up; the refiner's input-pose
+    noise follows a curriculum from 0.3 to 1.0 of its full size over the first half of
+    --iterations. Detector: centre-heatmap network (focal + GIoU losses) on rendered scenes.
+    Resumable: Ctrl-C (for the detector also SIGTERM, e.g. `kill PID` of a background run) saves
+    a checkpoint; --resume continues (with a larger --iterations to train longer).
     """
+    if kind == "detector":
+        if backbone is not None or crop is not None:
+            raise click.UsageError("--backbone and --crop are for the pose networks; the detector takes --input")
+        from ..detection import train as det_train
+
+        conf = det_train.resolve_conf(None, input_size=input_size, iterations=iterations, batch_size=batch_size,
+                                      lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
+                                      seed=seed, checkpoint_every=checkpoint_every)
+        det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo,
+                       progress=not quiet)
+        return
+    if input_size is not None:
+        raise click.UsageError("--input is for the detector; the pose networks take --crop")
     from ..training import train as train_mod
 
     conf = train_mod.resolve_conf(None, kind=kind, backbone=backbone, crop_size=crop, iterations=iterations,
@@ -74,7 +95,13 @@ def train(kind, dataset, split, out, backbone, crop, iterations, batch_size, lr,
 @click.option("--accuracy", default=None, help="Measured accuracy line for the model card [not measured].")
 @user_errors
 def export(run, out, accuracy) -> None:
-    """Export a trained run's network to ONNX (dynamic batch) and write its model card."""
+    """Export a trained run's network (pose network or detector) to ONNX (dynamic batch) and
+    write its model card."""
+    from ..detection import train as det_train
+
+    if det_train.run_kind(run) == "detector":
+        det_train.export(run, out, accuracy=accuracy, log=click.echo)
+        return
     from ..training import train as train_mod
 
     train_mod.export(run, out, accuracy=accuracy, log=click.echo)

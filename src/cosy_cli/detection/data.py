@@ -1,0 +1,422 @@
+"""Training images for the detector, rendered on the fly: random scenes of a dataset's objects
+with domain randomisation, rendered straight at the network's input size.
+
+One image (:meth:`DetectionSampleGenerator.batch`):
+
+- objects: 1..``max_objects`` instances of the dataset's objects (distinct while possible);
+- layout, "table" (probability ``p_table``): the objects rest on the plane z = 0 (each on a
+  face of its convex hull picked with probability proportional to the face's area, a random
+  yaw) at random places in a disc (footprints kept about apart: from spread out to cluttered),
+  seen by a camera 300-1100 mm from the cluster at 12-85 deg elevation, any azimuth, a roll of
+  +-15 deg, looking at a point jittered about the cluster (so objects also fall partly outside
+  the image); a table (a 1400 mm box, random colour) is drawn under them with probability 0.85.
+  "Floating": every object at a uniformly random orientation, depth 250-1200 mm, centre
+  projecting anywhere in the image +-10 %, free to overlap (heavy occlusion).
+- camera: the dataset's intrinsics (``camera.json``) scaled to the input size, focal x U(0.9, 1.1);
+- appearance: random flat object colours (greys, browns, any hue), one light per group of
+  images (direction, intensity, ambient random), smooth colour noise on the objects, a random
+  background (flat, gradient, blobs, coarse noise or random rectangles and discs) where nothing is drawn,
+  contrast / brightness / per-channel gain, sensor noise, blur.
+
+Ground truth, as the BOP toolkit's ``bbox_visib``: the box of each instance's visible pixels;
+instances with ``visib_fract`` < ``min_visib`` (visible / silhouette pixels in the image, the
+silhouette rendered alone at half resolution) or fewer than ``min_pixels`` visible pixels are
+returned as "ignore" boxes (no loss inside them on their class channel).
+
+Boxes are [x1, y1, x2, y2] in continuous coordinates of the input image whose pixel (u, v)
+covers [u, u + 1) x [v, v + 1): the box of a mask with columns x_min..x_max is x1 = x_min,
+x2 = x_max + 1.
+
+Deterministic under ``seed``. The OpenGL renderer is created on first use: build generators
+inside worker processes (:class:`DetectionStream` does).
+"""
+
+from __future__ import annotations
+
+import atexit
+import math
+
+import numpy as np
+
+from ..geometry.poses import invert, look_at, make_pose
+from ..geometry.rotations import random_rotations, rotation_about_axis
+
+TABLE_ID = 0
+TABLE_SIZE_MM = 1400.0
+
+
+def scaled_intrinsics(K: np.ndarray, image_size, input_size) -> np.ndarray:
+    """K (3x3, pixel centres at integers) of ``image_size`` (w, h) resized to ``input_size``."""
+    sx, sy = input_size[0] / image_size[0], input_size[1] / image_size[1]
+    K = np.asarray(K, dtype=np.float64)
+    out = K.copy()
+    out[0, 0], out[0, 1], out[1, 1] = K[0, 0] * sx, K[0, 1] * sx, K[1, 1] * sy
+    out[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return out
+
+
+def _rotation_to_down(n: np.ndarray) -> np.ndarray:
+    """R (3, 3) with R @ n = (0, 0, -1) for the unit vector n."""
+    target = np.array([0.0, 0.0, -1.0])
+    c = float(np.clip(n @ target, -1.0, 1.0))
+    if c > 1 - 1e-9:
+        return np.eye(3)
+    if c < -1 + 1e-9:
+        return np.diag([1.0, -1.0, -1.0])
+    axis = np.cross(n, target)
+    return rotation_about_axis(axis / np.linalg.norm(axis), np.array([math.acos(c)]))[0]
+
+
+class _RestPoses:
+    """Resting faces of one object: the convex hull's faces grouped by normal, picked with
+    probability proportional to their area."""
+
+    def __init__(self, mesh):
+        hull = mesh.convex_hull
+        normals = np.asarray(hull.face_normals)
+        areas = np.asarray(hull.area_faces)
+        keys, inv = np.unique(np.round(normals, 3), axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        area = np.bincount(inv, weights=areas, minlength=len(keys))
+        n = np.stack([np.bincount(inv, weights=normals[:, k] * areas, minlength=len(keys)) for k in range(3)], 1)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        self.rotations = np.stack([_rotation_to_down(v) for v in n])
+        self.prob = area / area.sum()
+        self.hull = np.asarray(hull.vertices, dtype=np.float64)
+
+    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+        """(R_world_obj (3, 3), lift mm so the lowest point is at z = 0, footprint radius mm)."""
+        R = self.rotations[rng.choice(len(self.prob), p=self.prob)]
+        yaw = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.array([rng.uniform(0, 2 * np.pi)]))[0]
+        R = yaw @ R
+        p = self.hull @ R.T
+        return R, -float(p[:, 2].min()), float(np.linalg.norm(p[:, :2], axis=1).max())
+
+
+class DetectionSampleGenerator:
+    """Random rendered training images of the objects ``meshes`` ({obj_id: trimesh.Trimesh, mm}).
+
+    K, image_size: the dataset camera (3x3 px; (w, h)); input_size: (w, h) rendered. obj_ids:
+    the class order (default sorted ids). See the module docstring for the rest."""
+
+    def __init__(self, meshes: dict, K: np.ndarray, image_size, input_size=(320, 240), seed=0, *,
+                 obj_ids=None, max_objects: int = 10, p_table: float = 0.75, min_visib: float = 0.1,
+                 min_pixels: int = 12, light_groups: int = 4, smooth: bool = True):
+        self.meshes = {int(k): v for k, v in meshes.items()}
+        self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
+        self.K = np.asarray(K, dtype=np.float64)
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.input_size = (int(input_size[0]), int(input_size[1]))
+        self.K_input = scaled_intrinsics(self.K, self.image_size, self.input_size)
+        self.rng = np.random.default_rng(seed)
+        self.max_objects = int(max_objects)
+        self.p_table = float(p_table)
+        self.min_visib = float(min_visib)
+        self.min_pixels = int(min_pixels)
+        self.light_groups = max(1, int(light_groups))
+        self.smooth = smooth
+        self.rest = {int(o): _RestPoses(self.meshes[int(o)]) for o in self.obj_ids}
+        self.radius = {int(o): float(np.linalg.norm(self.rest[int(o)].hull, axis=1).max()) for o in self.obj_ids}
+        self._renderer = None
+
+    # ------------------------------------------------------------------ renderer
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            from ..rendering import SceneRenderer
+            from ..synth.scenes import table_mesh
+
+            meshes = dict(self.meshes)
+            meshes[TABLE_ID] = table_mesh()
+            w, h = self.input_size
+            self._renderer = SceneRenderer(meshes, w, h, znear=10.0, zfar=20_000.0, smooth=self.smooth)
+        return self._renderer
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __getstate__(self):
+        raise TypeError("DetectionSampleGenerator holds an OpenGL context: pickle DetectionStream instead")
+
+    # ------------------------------------------------------------------ scenes
+    def _choose(self, n: int) -> np.ndarray:
+        rng = self.rng
+        first = rng.permutation(self.obj_ids)[:min(n, len(self.obj_ids))]
+        extra = rng.choice(self.obj_ids, size=max(0, n - len(self.obj_ids)))
+        return np.concatenate([first, extra]).astype(np.int64)
+
+    def _table_scene(self, ids: np.ndarray):
+        """(T_cam_obj (n, 4, 4), T_cam_world (4, 4)) of objects resting on a table."""
+        rng = self.rng
+        n = len(ids)
+        Rs, lifts, radii = zip(*(self.rest[int(o)].sample(rng) for o in ids))
+        radii = np.array(radii)
+        fill = rng.uniform(0.15, 0.6)
+        disc = max(60.0, math.sqrt(float(np.sum(np.pi * radii ** 2)) / fill / math.pi))
+        centres = np.zeros((n, 2))
+        keep = np.ones(n, bool)
+        slack = rng.uniform(0.75, 1.0)  # footprint radii overestimate: a little overlap of circles is fine
+        for i in range(n):
+            for attempt in range(60):
+                r = disc * math.sqrt(rng.uniform()) * (1 + attempt / 30)
+                phi = rng.uniform(0, 2 * np.pi)
+                c = np.array([r * math.cos(phi), r * math.sin(phi)])
+                if i == 0 or np.all(np.linalg.norm(centres[:i][keep[:i]] - c, axis=1)
+                                    >= slack * (radii[:i][keep[:i]] + radii[i])):
+                    break
+            else:
+                keep[i] = False
+            centres[i] = c
+        T_world_obj = make_pose(np.stack(Rs), np.concatenate([centres, np.array(lifts)[:, None]], 1))[keep]
+        centre = centres[keep].mean(0)
+        spread = float(np.ptp(centres[keep], axis=0).max()) / 2 + 50.0 if keep.sum() > 1 else 60.0
+        dist = rng.uniform(300.0, 1100.0)
+        el = math.radians(rng.uniform(12.0, 85.0))
+        az = rng.uniform(0, 2 * np.pi)
+        target = np.array([*(centre + rng.normal(0, 0.5 * spread, 2)), rng.uniform(0, 40)])
+        eye = target + dist * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        T_world_cam = look_at(eye, target, up=(0.0, 0.0, 1.0))
+        roll = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.array([math.radians(rng.uniform(-15, 15))]))[0]
+        T_world_cam[:3, :3] = T_world_cam[:3, :3] @ roll
+        T_cam_world = invert(T_world_cam)
+        return T_cam_world[None] @ T_world_obj, T_cam_world, ids[keep]
+
+    def _floating_scene(self, ids: np.ndarray, K: np.ndarray):
+        rng = self.rng
+        n = len(ids)
+        w, h = self.input_size
+        z = rng.uniform(250.0, 1200.0, n)
+        u = rng.uniform(-0.1 * w, 1.1 * w, n)
+        v = rng.uniform(-0.1 * h, 1.1 * h, n)
+        y = (v - K[1, 2]) / K[1, 1]
+        x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        return make_pose(random_rotations(n, rng), np.stack([x, y, np.ones(n)], 1) * z[:, None])
+
+    def _colors(self, n: int) -> np.ndarray:
+        from ..training.data import _hsv_to_rgb
+
+        rng = self.rng
+        kind = rng.choice(3, size=n, p=[0.5, 0.2, 0.3])
+        grey = np.clip(rng.uniform(0.2, 0.95, (n, 1)) + rng.normal(0, 0.03, (n, 3)), 0, 1)
+        hue = np.where(kind == 1, rng.uniform(0.04, 0.13, n), rng.uniform(0, 1, n))
+        sat = np.where(kind == 1, rng.uniform(0.2, 0.65, n), rng.uniform(0.2, 0.9, n))
+        val = rng.uniform(0.3, 0.95, n)
+        return np.where((kind == 0)[:, None], grey, _hsv_to_rgb(hue, sat, val))
+
+    # ------------------------------------------------------------------ batches
+    def batch(self, B: int) -> dict:
+        """B images: {"images": (B, H, W, 3) uint8, "boxes": [ (n_b, 4) xyxy input px ],
+        "labels": [ (n_b,) class indices ], "ignore_boxes", "ignore_labels": the same for
+        barely visible instances, "visib_fract": [ (n_b,) ] of the kept instances}."""
+        rng = self.rng
+        w, h = self.input_size
+        ids_all, T_all, tile_all, Ks, is_table = [], [], [], [], []
+        for b in range(B):
+            K = self.K_input.copy()
+            f = rng.uniform(0.9, 1.1)
+            K[0, 0] *= f
+            K[1, 1] *= f
+            K[0, 1] *= f
+            Ks.append(K)
+            ids = self._choose(int(rng.integers(1, self.max_objects + 1)))
+            if rng.random() < self.p_table:
+                T, T_cam_world, ids = self._table_scene(ids)
+                if rng.random() < 0.85:
+                    ids = np.concatenate([ids, [TABLE_ID]])
+                    T = np.concatenate([T, T_cam_world[None]])
+            else:
+                T = self._floating_scene(ids, K)
+            ids_all.append(ids)
+            T_all.append(T)
+            tile_all.append(np.full(len(ids), b))
+            is_table.append(ids == TABLE_ID)
+        ids = np.concatenate(ids_all).astype(np.int64)
+        T = np.concatenate(T_all)
+        tiles = np.concatenate(tile_all)
+        is_table = np.concatenate(is_table)
+        Ks = np.stack(Ks)
+        n = len(ids)
+        colors = self._colors(n)
+        if is_table.any():  # table colours as cosy synth draws them, a little wider
+            from ..training.data import _hsv_to_rgb
+
+            k = int(is_table.sum())
+            colors[is_table] = _hsv_to_rgb(rng.uniform(0, 1, k), rng.uniform(0, 0.6, k), rng.uniform(0.1, 0.95, k))
+
+        r = self.renderer
+        rgb = np.empty((B, h, w, 3), np.uint8)
+        inst = np.empty((B, h, w), np.int32)
+        G = min(self.light_groups, B)
+        edges = np.linspace(0, B, G + 1).astype(int)
+        theta = np.radians(rng.uniform(0, 75, G))
+        phi = rng.uniform(0, 2 * np.pi, G)
+        light_dirs = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
+        intensity = rng.uniform(0.35, 0.95, G)
+        ambient = rng.uniform(0.1, 0.5, G)
+        for g in range(G):
+            b0, b1 = edges[g], edges[g + 1]
+            i0, i1 = np.searchsorted(tiles, [b0, b1])
+            out = r.render_crops(Ks[b0:b1], ids[i0:i1], T[i0:i1], (w, h), colors=colors[i0:i1],
+                                 light_dir=light_dirs[g], light_intensity=float(intensity[g]),
+                                 ambient=float(ambient[g]), tiles=tiles[i0:i1] - b0)
+            rgb[b0:b1] = out.rgb
+            inst[b0:b1] = np.where(out.instance >= 0, out.instance + i0, -1)
+
+        # silhouettes of the objects alone, at half resolution (visible fraction only)
+        objs = np.flatnonzero(~is_table)
+        hw, hh = max(1, w // 2), max(1, h // 2)
+        Kh = np.array([scaled_intrinsics(K, (w, h), (hw, hh)) for K in Ks])
+        sil = r.render_crops(Kh[tiles[objs]], ids[objs], T[objs], (hw, hh), with_rgb=False).instance >= 0
+        full_px = np.zeros(n)
+        full_px[objs] = sil.reshape(len(objs), -1).sum(1) * (w * h) / (hw * hh)
+
+        out = {"boxes": [], "labels": [], "ignore_boxes": [], "ignore_labels": [], "visib_fract": []}
+        class_of = {int(o): k for k, o in enumerate(self.obj_ids)}
+        for b in range(B):
+            i0, i1 = np.searchsorted(tiles, [b, b + 1])
+            members = [i for i in range(i0, i1) if not is_table[i]]
+            boxes, labels, ign, ign_l, vis = [], [], [], [], []
+            if members:
+                m = inst[b][None] == np.array(members)[:, None, None]  # (k, h, w)
+                px = m.sum((1, 2))
+                rows, cols = m.any(2), m.any(1)
+                for k, i in enumerate(members):
+                    if px[k] == 0:
+                        continue
+                    ys, xs = np.flatnonzero(rows[k]), np.flatnonzero(cols[k])
+                    box = [xs[0], ys[0], xs[-1] + 1, ys[-1] + 1]
+                    vf = min(1.0, px[k] / max(full_px[i], 1.0))
+                    if vf < self.min_visib or px[k] < self.min_pixels:
+                        ign.append(box)
+                        ign_l.append(class_of[int(ids[i])])
+                    else:
+                        boxes.append(box)
+                        labels.append(class_of[int(ids[i])])
+                        vis.append(vf)
+            out["boxes"].append(np.array(boxes, np.float64).reshape(-1, 4))
+            out["labels"].append(np.array(labels, np.int64))
+            out["ignore_boxes"].append(np.array(ign, np.float64).reshape(-1, 4))
+            out["ignore_labels"].append(np.array(ign_l, np.int64))
+            out["visib_fract"].append(np.array(vis))
+        out["images"] = self._compose(rgb, inst >= 0)
+        return out
+
+    # ------------------------------------------------------------------ appearance
+    def _noise(self, h: int, w: int) -> np.ndarray:
+        """(h, w, 3) float32 unit Gaussian noise: a random window of a fixed (2h, 2w) bank (fresh
+        noise per pixel costs more than the rest of the compositing)."""
+        if getattr(self, "_bank", None) is None or self._bank.shape[:2] != (2 * h, 2 * w):
+            self._bank = np.random.default_rng(987).standard_normal((2 * h, 2 * w, 3), dtype=np.float32)
+        y, x = int(self.rng.integers(h)), int(self.rng.integers(w))
+        return self._bank[y:y + h, x:x + w]
+
+    def _compose(self, rgb: np.ndarray, foreground: np.ndarray) -> np.ndarray:
+        """Backgrounds where nothing was drawn, colour noise on the surfaces, image augmentations."""
+        import cv2
+
+        rng = self.rng
+        B, h, w, _ = rgb.shape
+        out = np.empty_like(rgb)
+        for b in range(B):
+            img = rgb[b].astype(np.float32)
+            field = rng.uniform(0.85, 1.15, (int(rng.integers(2, 6)), int(rng.integers(2, 8)), 3)).astype(np.float32)
+            cv2.multiply(img, cv2.resize(field, (w, h), interpolation=cv2.INTER_CUBIC), dst=img)
+            if not foreground[b].all():
+                kind = int(rng.integers(0, 5))
+                c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
+                if kind == 0:
+                    bg = np.empty((h, w, 3), np.float32)
+                    bg[:] = c0
+                elif kind == 1:
+                    a = rng.uniform(0, 2 * np.pi)
+                    ramp = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]) @ [math.cos(a), math.sin(a)]
+                    ramp = (ramp - ramp.min()) / max(np.ptp(ramp), 1e-6)
+                    cg = (c0 + ramp[:, None] * (c1 - c0)).reshape(2, 2, 3).astype(np.float32)
+                    bg = cv2.resize(cg, (w, h), interpolation=cv2.INTER_LINEAR)
+                elif kind == 2:
+                    grid = rng.uniform(0, 255, (int(rng.integers(2, 8)), int(rng.integers(2, 10)), 3))
+                    bg = cv2.resize(grid.astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
+                elif kind == 3:
+                    small = rng.uniform(0, 255, (h // 8 + 1, w // 8 + 1, 3)).astype(np.float32)
+                    bg = cv2.resize(small, (w, h), interpolation=cv2.INTER_NEAREST if rng.random() < 0.5
+                                    else cv2.INTER_LINEAR)
+                else:  # random flat rectangles and discs: clutter with edges, never an object
+                    bg = np.empty((h, w, 3), np.float32)
+                    bg[:] = c0
+                    for _ in range(int(rng.integers(5, 30))):
+                        col = tuple(float(v) for v in rng.uniform(0, 255, 3))
+                        x, y = int(rng.integers(-w // 4, w)), int(rng.integers(-h // 4, h))
+                        if rng.random() < 0.6:
+                            cv2.rectangle(bg, (x, y), (x + int(rng.integers(4, w // 2)), y + int(rng.integers(4, h // 2))),
+                                          col, -1)
+                        else:
+                            cv2.circle(bg, (x, y), int(rng.integers(3, h // 4)), col, -1)
+                if rng.random() < 0.5:
+                    cv2.scaleAdd(self._noise(h, w), float(rng.uniform(0, 12)), bg, dst=bg)
+                cv2.copyTo(bg, (~foreground[b]).view(np.uint8), img)
+            contrast, bright = rng.uniform(0.7, 1.3), rng.normal(0, 12)
+            gain = rng.uniform(0.9, 1.1, 3)
+            mean = float(img.mean())
+            M = np.zeros((3, 4), np.float32)
+            M[[0, 1, 2], [0, 1, 2]] = contrast * gain
+            M[:, 3] = mean * (1 - contrast) * gain + bright
+            img = cv2.transform(img, M)
+            if rng.random() < 0.5:
+                cv2.scaleAdd(self._noise(h, w), float(rng.uniform(1, 6)), img, dst=img)
+            if rng.random() < 0.25:
+                img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, 1.0)))
+            out[b] = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        return out
+
+
+# ---------------------------------------------------------------------- torch stream
+def _iterable_base():
+    try:
+        from torch.utils.data import IterableDataset
+
+        return IterableDataset
+    except ImportError:  # pragma: no cover
+        return object
+
+
+def batch_targets(batch: dict, config) -> dict:
+    """numpy training tensors of a generator batch: images (B, 3, H, W) float32 [0, 1] and the
+    stacked :func:`~cosy_cli.detection.model.encode_targets`."""
+    from .model import encode_targets, stack_targets
+
+    t = stack_targets([encode_targets(bx, lb, config, ib, il) for bx, lb, ib, il in
+                       zip(batch["boxes"], batch["labels"], batch["ignore_boxes"], batch["ignore_labels"])])
+    t["images"] = np.ascontiguousarray(batch["images"].transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+    return t
+
+
+class DetectionStream(_iterable_base()):
+    """Endless torch IterableDataset of encoded training batches (use ``batch_size=None``); each
+    worker builds its own generator seeded by (seed, worker id)."""
+
+    def __init__(self, meshes: dict, K, image_size, config, batch_size: int, seed: int = 0, **kw):
+        super().__init__()
+        self.meshes, self.K, self.image_size, self.config = meshes, K, image_size, config
+        self.batch_size, self.seed, self.kw = int(batch_size), int(seed), kw
+
+    def __iter__(self):
+        from torch.utils.data import get_worker_info
+
+        info = get_worker_info()
+        worker = 0 if info is None else info.id
+        gen = DetectionSampleGenerator(self.meshes, self.K, self.image_size, self.config.input_size,
+                                       seed=np.random.SeedSequence([self.seed, worker]),
+                                       obj_ids=self.config.obj_ids, **self.kw)
+        if info is not None:
+            atexit.register(gen.close)
+        try:
+            while True:
+                yield batch_targets(gen.batch(self.batch_size), self.config)
+        finally:
+            gen.close()
+
+
+__all__ = ["DetectionSampleGenerator", "DetectionStream", "batch_targets", "scaled_intrinsics"]

@@ -1,0 +1,264 @@
+"""The trainable 2D detector: boxes/NMS, target encoding, training, ONNX export and runner, CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from cosy_cli.rendering import SceneRenderer  # noqa: F401  (selects the GL platform first)
+from cosy_cli.cli.main import cli  # noqa: E402
+from cosy_cli.detection.boxes import box_iou, nms, nms_per_class, xywh_to_xyxy, xyxy_to_xywh  # noqa: E402
+from cosy_cli.detection.model import (  # noqa: E402
+    CenterNet, DetectorConfig, ExportWrapper, decode_targets, detection_loss, encode_targets, stack_targets,
+)
+from cosy_cli.errors import CosyError  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[1] / "data_samples"
+TINY_NET = dict(input_size=(64, 48), stride=8, channels=(4, 8, 8, 16, 16), depth=(0, 0, 1, 1), fpn=8, head=8)
+
+
+# ------------------------------------------------------------------------------------ boxes
+def test_box_iou_hand_made():
+    a = np.array([[0, 0, 10, 10], [5, 5, 10, 10], [100, 100, 1, 1], [0, 0, 0, 5]])
+    b = np.array([[0, 0, 10, 10], [5, 0, 10, 10], [50, 50, 5, 5]])
+    iou = box_iou(a, b)
+    assert iou.shape == (4, 3)
+    assert iou[0, 0] == pytest.approx(1.0)
+    assert iou[0, 1] == pytest.approx(50 / 150)  # half overlap
+    assert iou[1, 0] == pytest.approx(25 / 175)  # quarter overlap
+    assert iou[1, 1] == pytest.approx(50 / 150)
+    assert iou[2].max() == 0.0 and iou[:, 2].max() == 0.0  # disjoint
+    assert np.all(iou[3] == 0.0)  # empty box
+    assert box_iou(np.zeros((0, 4)), b).shape == (0, 3)
+    with pytest.raises(ValueError):
+        box_iou(np.zeros((2, 3)), b)
+    xyxy = xywh_to_xyxy(a)
+    assert np.allclose(xyxy_to_xywh(xyxy), a)
+
+
+def test_nms_keeps_the_best_of_each_cluster():
+    boxes = np.array([[0, 0, 10, 10], [1, 0, 10, 10], [50, 50, 10, 10], [0, 1, 10, 10], [51, 50, 10, 10],
+                      [0, 0, 4, 4]])
+    scores = np.array([0.9, 0.95, 0.5, 0.3, 0.6, 0.8])
+    keep = nms(boxes, scores, 0.5)
+    assert keep.tolist() == [1, 5, 4]  # by score; 0 and 3 suppressed by 1, 2 by 4; the small one survives
+    assert nms(boxes, scores, 0.99).tolist() == list(np.argsort(-scores))  # nothing suppressed
+    assert nms(np.zeros((0, 4)), np.zeros(0)).tolist() == []
+
+
+def test_nms_per_class_only_within_a_class():
+    boxes = np.array([[0, 0, 10, 10], [1, 0, 10, 10], [0, 0, 10, 10], [100, 0, 10, 10]])
+    scores = np.array([0.9, 0.8, 0.7, 0.6])
+    labels = np.array([1, 1, 2, 2])
+    keep = nms_per_class(boxes, scores, labels, 0.5)
+    assert keep.tolist() == [0, 2, 3]  # box 1 suppressed by 0 (same class); 2 overlaps 0 but is another class
+    assert nms_per_class(boxes, scores, np.ones(4), 0.5).tolist() == nms(boxes, scores, 0.5).tolist()
+    # random cases against a per-class loop
+    rng = np.random.default_rng(0)
+    b = np.concatenate([rng.uniform(0, 100, (60, 2)), rng.uniform(5, 40, (60, 2))], 1)
+    s = rng.uniform(0, 1, 60)
+    lab = rng.integers(0, 3, 60)
+    keep = nms_per_class(b, s, lab, 0.4)
+    expect = np.concatenate([np.flatnonzero(lab == c)[nms(b[lab == c], s[lab == c], 0.4)] for c in range(3)])
+    assert sorted(keep.tolist()) == sorted(expect.tolist())
+    assert np.all(np.diff(s[keep]) <= 0)
+
+
+# ------------------------------------------------------------------------------------ targets
+def test_encoding_then_decoding_recovers_the_boxes():
+    cfg = DetectorConfig(obj_ids=[3, 5, 9], input_size=(320, 240), stride=8)
+    boxes = np.array([[10.0, 20.0, 70.0, 90.0], [100.0, 100.0, 131.0, 180.0], [200.5, 30.0, 318.0, 140.0],
+                      [40.0, 150.0, 120.0, 238.0]])
+    labels = np.array([0, 2, 1, 2])
+    t = encode_targets(boxes, labels, cfg, ignore_xyxy=np.array([[250.0, 200.0, 270.0, 230.0]]),
+                       ignore_labels=np.array([0]))
+    assert t["heat"].shape == (3, 30, 40) and t["ltrb"].shape == (4, 30, 40) and t["n_obj"] == 4
+    assert t["heat"].max() == 1.0 and (t["heat"] == 1.0).sum() == 4
+    assert t["ignore"][0, 26, 32] == 1.0 and t["ignore"][1].max() == 0.0
+    xyxy, scores, cls = decode_targets(t["heat"], t["ltrb"], cfg.stride)
+    assert len(xyxy) == 4
+    iou = box_iou(xyxy_to_xywh(boxes), xyxy_to_xywh(xyxy))
+    match = iou.argmax(1)
+    assert np.allclose(xyxy[match], boxes, atol=1e-4)
+    assert cls[match].tolist() == labels.tolist()
+
+
+def _tiny_batch(cfg: DetectorConfig, n: int = 4, seed: int = 0):
+    """Images with bright rectangles on noise (class = colour channel) and their targets."""
+    rng = np.random.default_rng(seed)
+    w, h = cfg.input_size
+    imgs = rng.uniform(0, 0.3, (n, 3, h, w)).astype(np.float32)
+    targets = []
+    for i in range(n):
+        x1, y1 = rng.integers(0, w - 24), rng.integers(0, h - 20)
+        x2, y2 = x1 + rng.integers(12, 24), y1 + rng.integers(10, 20)
+        c = int(rng.integers(cfg.n_classes))
+        imgs[i, c, y1:y2, x1:x2] = 1.0
+        targets.append(encode_targets(np.array([[x1, y1, x2, y2]], float), np.array([c]), cfg))
+    t = {k: torch.as_tensor(v) for k, v in stack_targets(targets).items() if k != "n_obj"}
+    return torch.from_numpy(imgs), t
+
+
+def test_training_steps_reduce_the_loss():
+    torch.manual_seed(0)
+    cfg = DetectorConfig(obj_ids=[1, 2, 3], **TINY_NET)
+    net = CenterNet(cfg).train()
+    x, t = _tiny_batch(cfg)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(40):
+        heat, box = net(x)
+        terms = detection_loss(heat, box, t, cfg.stride)
+        opt.zero_grad()
+        terms["total"].backward()
+        opt.step()
+        losses.append(float(terms["total"].detach()))
+    assert np.isfinite(losses).all()
+    assert losses[-1] < 0.5 * losses[0]
+
+
+# ------------------------------------------------------------------------------------ ONNX
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory):
+    from cosy_cli.detection.train import export_onnx
+
+    torch.manual_seed(1)
+    cfg = DetectorConfig(obj_ids=[4, 7, 8], **TINY_NET)
+    net = CenterNet(cfg).eval()
+    with torch.no_grad():  # a heatmap with some confident peaks even untrained
+        net.heat[-1].bias.fill_(0.0)
+    path = export_onnx(net, tmp_path_factory.mktemp("onnx") / "tiny.onnx")
+    return net, path
+
+
+def test_onnx_matches_torch(tiny_onnx):
+    from cosy_cli.detection.network import OnnxDetector
+
+    net, path = tiny_onnx
+    det = OnnxDetector(path)
+    x = torch.rand(3, 3, 48, 64)
+    with torch.no_grad():
+        peaks_t, ltrb_t = ExportWrapper(net)(x)
+    peaks_o, ltrb_o = det.raw(x.numpy())
+    assert peaks_o.shape == (3, 3, 6, 8) and ltrb_o.shape == (3, 4, 6, 8)
+    assert np.abs(peaks_o - peaks_t.numpy()).max() < 1e-4
+    assert np.abs(ltrb_o - ltrb_t.numpy()).max() < 1e-4 * max(1.0, float(ltrb_t.abs().max()))
+
+
+def test_onnx_detector_outputs(tiny_onnx):
+    from cosy_cli.detection.network import OnnxDetector
+
+    _, path = tiny_onnx
+    det = OnnxDetector(path, providers=("cpu",))
+    assert det.obj_ids == [4, 7, 8] and det.input_size == (64, 48)
+    rng = np.random.default_rng(0)
+    for H, W in ((480, 640), (300, 500), (37, 53)):
+        rgb = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        boxes, scores, ids = det.detect(rgb, min_score=0.0, max_per_image=30)
+        assert boxes.shape == (len(scores), 4) and ids.shape == scores.shape
+        assert boxes.dtype == np.float64 and scores.dtype == np.float64 and ids.dtype == np.int64
+        assert 0 < len(scores) <= 30
+        assert np.all(np.diff(scores) <= 0) and scores.min() >= 0 and scores.max() <= 1
+        assert set(ids.tolist()) <= {4, 7, 8}
+        assert np.all(boxes[:, :2] >= 0) and np.all(boxes[:, 2:] >= 0)
+        assert np.all(boxes[:, 0] + boxes[:, 2] <= W - 1 + 1e-9) and np.all(boxes[:, 1] + boxes[:, 3] <= H - 1 + 1e-9)
+        for c in set(ids.tolist()):  # per-class NMS applied
+            m = ids == c
+            iou = box_iou(boxes[m], boxes[m])
+            assert np.all(iou[np.triu_indices(int(m.sum()), 1)] <= 0.5 + 1e-9)
+    few = det.detect(rgb, min_score=0.0, max_per_image=2)
+    assert len(few[0]) <= 2
+    none = det.detect(rgb, min_score=1.01)
+    assert none[0].shape == (0, 4)
+    with pytest.raises(ValueError):
+        det.detect(rgb.astype(np.float32))
+
+
+def test_missing_or_bad_model_file(tmp_path):
+    from cosy_cli.detection.network import OnnxDetector
+
+    with pytest.raises(CosyError, match="cosy train detector"):
+        OnnxDetector(tmp_path / "nope.onnx")
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not an onnx model")
+    with pytest.raises(CosyError, match="ONNX"):
+        OnnxDetector(bad)
+
+
+# ------------------------------------------------------------------------------------ CLI
+def test_cli_train_resume_export(tmp_path):
+    from cosy_cli.detection.network import OnnxDetector
+    from cosy_cli.detection.train import read_log
+
+    out = tmp_path / "run"
+    args = ["train", "detector", "--dataset", str(DATA), "--out", str(out), "--input", "64x48", "--batch-size", "2",
+            "--workers", "0", "--warmup", "1", "--checkpoint-every", "1", "--quiet"]
+    r = CliRunner().invoke(cli, args + ["--iterations", "2"])
+    assert r.exit_code == 0, r.output
+    assert (out / "checkpoint.pt").is_file() and (out / "loss.png").is_file()
+    assert [row["step"] for row in read_log(out / "log.csv")] == [1, 2]
+    r = CliRunner().invoke(cli, args + ["--iterations", "3"])  # no --resume: refused
+    assert r.exit_code == 2 and "--resume" in r.output
+    r = CliRunner().invoke(cli, args + ["--iterations", "3", "--resume"])
+    assert r.exit_code == 0, r.output
+    ck = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
+    assert ck["step"] == 3 and ck["samples"] == 6
+    assert [row["step"] for row in read_log(out / "log.csv")] == [1, 2, 3]
+    r = CliRunner().invoke(cli, args[:-1] + ["--iterations", "4", "--resume", "--input", "96x64"])
+    assert r.exit_code == 2 and "input_size" in r.output  # the model's shape cannot change on resume
+
+    onnx_path = tmp_path / "detector.onnx"
+    r = CliRunner().invoke(cli, ["export", "--run", str(out), "--out", str(onnx_path), "--accuracy", "AP50 0.1"])
+    assert r.exit_code == 0, r.output
+    card = (tmp_path / "detector.md").read_text()
+    assert "AP50 0.1" in card and "64 x 48" in card and "3 steps" in card
+    det = OnnxDetector(onnx_path)
+    assert det.obj_ids == list(range(1, 9)) and det.input_size == (64, 48)
+    from cosy_cli.io.images import read_rgb
+
+    boxes, scores, ids = det.detect(read_rgb(DATA / "test" / "000001" / "rgb" / "000000.png"), min_score=0.0)
+    assert boxes.shape[1] == 4 and len(boxes) == len(scores) == len(ids)
+
+
+def test_cli_rejects_pose_options_for_the_detector(tmp_path):
+    r = CliRunner().invoke(cli, ["train", "detector", "--dataset", str(DATA), "--out", str(tmp_path / "r"),
+                                 "--crop", "64x48"])
+    assert r.exit_code != 0 and "--input" in r.output
+    r = CliRunner().invoke(cli, ["train", "detector", "--dataset", str(DATA), "--out", str(tmp_path / "r"),
+                                 "--input", "70x48"])
+    assert r.exit_code == 2 and "multiples of 16" in r.output
+
+
+def test_sigterm_saves_a_checkpoint(tmp_path):
+    """A background run stopped with `kill PID` (SIGTERM) saves its checkpoint like Ctrl-C."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "cosy_cli", "train", "detector", "--dataset", str(DATA), "--out", str(out),
+           "--input", "64x48", "--batch-size", "1", "--workers", "0", "--iterations", "100000",
+           "--checkpoint-every", "100000", "--quiet"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=dict(os.environ))
+    try:
+        t0 = time.time()
+        while not ((out / "log.csv").is_file() and len((out / "log.csv").read_text().splitlines()) >= 2):
+            assert p.poll() is None, p.stdout.read().decode()
+            assert time.time() - t0 < 60, "no training step logged within 60 s"
+            time.sleep(0.2)
+        p.send_signal(signal.SIGTERM)
+        p.wait(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    text = p.stdout.read().decode()
+    assert p.returncode == 130, text
+    assert "checkpoint saved at step" in text
+    ck = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
+    assert ck["step"] >= 20
