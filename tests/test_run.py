@@ -174,3 +174,18 @@ def test_bad_input(tmp_path, candidates):
                                  "--candidates", str(candidates)])
     assert r.exit_code == 2 and "unknown run configuration 'nope'" in r.output and "Traceback" not in r.output
     shutil.rmtree(junk)
+
+
+def test_set_overrides_reach_the_stage_settings(tmp_path, candidates):
+    assert run_stage.parse_settings(["detect.min_score=0.1", "match.views_per_group=4", "estimate.coarse=templates"]) \
+        == {"detect": {"min_score": 0.1}, "match": {"views_per_group": 4}, "estimate": {"coarse": "templates"}}
+    with pytest.raises(CosyError, match="STAGE.KEY=VALUE"):
+        run_stage.parse_settings(["min_score=0.1"])
+    r = CliRunner().invoke(cli, ["run", "--dataset", str(DATA), "--out", str(tmp_path / "r"), "--scene-id", "1",
+                                 "--candidates", str(candidates), "--to", "match", "--quiet",
+                                 "--set", "match.threshold_mm=30", "--views-per-group", "4"])
+    assert r.exit_code == 0, r.output
+    confs = json.loads((tmp_path / "r" / "run.json").read_text())["confs"]
+    assert confs["match"]["threshold_mm"] == 30 and confs["match"]["views_per_group"] == 4
+    groups = json.loads((tmp_path / "r" / "scenes" / "000001" / "match" / "groups.json").read_text())
+    assert len(groups["groups"]) == 2

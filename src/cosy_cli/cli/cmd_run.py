@@ -37,6 +37,9 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
               help="First stage to run (earlier outputs are used as they are).")
 @click.option("--to", "last", type=click.Choice(STAGE_NAMES), default="viz", show_default=True,
               help="Last stage to run.")
+@click.option("--set", "settings", multiple=True, metavar="STAGE.KEY=VALUE",
+              help="Override one stage setting, e.g. --set detect.min_score=0.1 --set match.threshold_mm=30 "
+                   "(repeatable; the keys are listed in run.json under confs).")
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Scenes in parallel (spawned processes).")
 @click.option("--dask-scheduler", default=None, help="Run the scenes on this Dask cluster (tcp://HOST:PORT).")
@@ -44,7 +47,8 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @user_errors
 def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
-        templates_dir, views_per_group, known_cameras, first, last, workers, dask_scheduler, overwrite, quiet) -> None:
+        templates_dir, views_per_group, known_cameras, first, last, settings, workers, dask_scheduler, overwrite,
+        quiet) -> None:
     """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
 
     A stage whose settings, inputs and code did not change is skipped; a changed setting reruns
@@ -55,7 +59,9 @@ def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, 
 
     dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
 
-    overrides = {"match": {"views_per_group": views_per_group, "known_cameras": known_cameras or None}}
+    overrides = run_stage.parse_settings(settings)
+    overrides.setdefault("match", {}).update(
+        {k: v for k, v in (("views_per_group", views_per_group), ("known_cameras", known_cameras or None)) if v is not None})
     run_stage.main(config, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                    detections=detections, coco_images=coco_images, from_gt=from_gt, model=model,
                    candidates=candidates, models_dir=models_dir,

@@ -74,6 +74,24 @@ def resolve_confs(config: str | dict | None = "default", **overrides) -> dict:
     return json.loads(json.dumps(out))
 
 
+def parse_settings(items) -> dict:
+    """``["detect.min_score=0.1", "match.views_per_group=4"]`` -> ``{"detect": {"min_score": 0.1}, ...}``
+    (values read as JSON when they parse, else kept as strings)."""
+    out: dict[str, dict] = {}
+    for item in items or ():
+        key, sep, value = str(item).partition("=")
+        stage, dot, name = key.strip().partition(".")
+        if not sep or not dot or not name or stage not in SCENE_STAGES + ("evaluate",):
+            raise CosyError(f"--set {item!r}: expected STAGE.KEY=VALUE with STAGE one of "
+                            f"{', '.join(SCENE_STAGES + ('evaluate',))}")
+        try:
+            val = json.loads(value)
+        except json.JSONDecodeError:
+            val = value
+        out.setdefault(stage, {})[name] = val
+    return out
+
+
 # ------------------------------------------------------------------------------------------
 # one scene
 # ------------------------------------------------------------------------------------------
