@@ -40,6 +40,10 @@ import numpy as np
 
 from ..geometry.poses import invert, look_at, make_pose
 from ..geometry.rotations import random_rotations, rotation_about_axis
+from ..training.data import (
+    RendererOwner, flat_background, gradient_background, grid_background, hsv_to_rgb, multiply_field, noise_bank,
+    paste_background, photometric, random_colors, render_in_light_groups,
+)
 
 TABLE_ID = 0
 TABLE_SIZE_MM = 1400.0
@@ -94,7 +98,7 @@ class _RestPoses:
         return R, -float(p[:, 2].min()), float(np.linalg.norm(p[:, :2], axis=1).max())
 
 
-class DetectionSampleGenerator:
+class DetectionSampleGenerator(RendererOwner):
     """Random rendered training images of the objects ``meshes`` ({obj_id: trimesh.Trimesh, mm}).
 
     K, image_size: the dataset camera (3x3 px; (w, h)); input_size: (w, h) rendered. obj_ids:
@@ -121,25 +125,16 @@ class DetectionSampleGenerator:
         self._renderer = None
 
     # ------------------------------------------------------------------ renderer
-    @property
-    def renderer(self):
-        if self._renderer is None:
-            from ..rendering import SceneRenderer
-            from ..synth.scenes import table_mesh
+    _pickle_instead = "DetectionStream"
 
-            meshes = dict(self.meshes)
-            meshes[TABLE_ID] = table_mesh()
-            w, h = self.input_size
-            self._renderer = SceneRenderer(meshes, w, h, znear=10.0, zfar=20_000.0, smooth=self.smooth)
-        return self._renderer
+    def _make_renderer(self):
+        from ..rendering import SceneRenderer
+        from ..synth.scenes import table_mesh
 
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-    def __getstate__(self):
-        raise TypeError("DetectionSampleGenerator holds an OpenGL context: pickle DetectionStream instead")
+        meshes = dict(self.meshes)
+        meshes[TABLE_ID] = table_mesh()
+        w, h = self.input_size
+        return SceneRenderer(meshes, w, h, znear=10.0, zfar=20_000.0, smooth=self.smooth)
 
     # ------------------------------------------------------------------ scenes
     def _choose(self, n: int) -> np.ndarray:
@@ -196,15 +191,8 @@ class DetectionSampleGenerator:
         return make_pose(random_rotations(n, rng), np.stack([x, y, np.ones(n)], 1) * z[:, None])
 
     def _colors(self, n: int) -> np.ndarray:
-        from ..training.data import _hsv_to_rgb
-
-        rng = self.rng
-        kind = rng.choice(3, size=n, p=[0.5, 0.2, 0.3])
-        grey = np.clip(rng.uniform(0.2, 0.95, (n, 1)) + rng.normal(0, 0.03, (n, 3)), 0, 1)
-        hue = np.where(kind == 1, rng.uniform(0.04, 0.13, n), rng.uniform(0, 1, n))
-        sat = np.where(kind == 1, rng.uniform(0.2, 0.65, n), rng.uniform(0.2, 0.9, n))
-        val = rng.uniform(0.3, 0.95, n)
-        return np.where((kind == 0)[:, None], grey, _hsv_to_rgb(hue, sat, val))
+        return random_colors(self.rng, n, p=(0.5, 0.2, 0.3), brown_hue=(0.04, 0.13), brown_sat=(0.2, 0.65),
+                             sat=(0.2, 0.9), val=(0.3, 0.95))
 
     # ------------------------------------------------------------------ batches
     def batch(self, B: int) -> dict:
@@ -241,29 +229,12 @@ class DetectionSampleGenerator:
         n = len(ids)
         colors = self._colors(n)
         if is_table.any():  # table colours as cosy synth draws them, a little wider
-            from ..training.data import _hsv_to_rgb
-
             k = int(is_table.sum())
-            colors[is_table] = _hsv_to_rgb(rng.uniform(0, 1, k), rng.uniform(0, 0.6, k), rng.uniform(0.1, 0.95, k))
+            colors[is_table] = hsv_to_rgb(rng.uniform(0, 1, k), rng.uniform(0, 0.6, k), rng.uniform(0.1, 0.95, k))
 
         r = self.renderer
-        rgb = np.empty((B, h, w, 3), np.uint8)
-        inst = np.empty((B, h, w), np.int32)
-        G = min(self.light_groups, B)
-        edges = np.linspace(0, B, G + 1).astype(int)
-        theta = np.radians(rng.uniform(0, 75, G))
-        phi = rng.uniform(0, 2 * np.pi, G)
-        light_dirs = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
-        intensity = rng.uniform(0.35, 0.95, G)
-        ambient = rng.uniform(0.1, 0.5, G)
-        for g in range(G):
-            b0, b1 = edges[g], edges[g + 1]
-            i0, i1 = np.searchsorted(tiles, [b0, b1])
-            out = r.render_crops(Ks[b0:b1], ids[i0:i1], T[i0:i1], (w, h), colors=colors[i0:i1],
-                                 light_dir=light_dirs[g], light_intensity=float(intensity[g]),
-                                 ambient=float(ambient[g]), tiles=tiles[i0:i1] - b0)
-            rgb[b0:b1] = out.rgb
-            inst[b0:b1] = np.where(out.instance >= 0, out.instance + i0, -1)
+        rgb, inst = render_in_light_groups(r, rng, Ks, ids, T, tiles, (w, h), colors, self.light_groups,
+                                           intensity=(0.35, 0.95), ambient=(0.1, 0.5))
 
         # silhouettes of the objects alone, at half resolution (visible fraction only)
         objs = np.flatnonzero(~is_table)
@@ -306,12 +277,9 @@ class DetectionSampleGenerator:
 
     # ------------------------------------------------------------------ appearance
     def _noise(self, h: int, w: int) -> np.ndarray:
-        """(h, w, 3) float32 unit Gaussian noise: a random window of a fixed (2h, 2w) bank (fresh
-        noise per pixel costs more than the rest of the compositing)."""
-        if getattr(self, "_bank", None) is None or self._bank.shape[:2] != (2 * h, 2 * w):
-            self._bank = np.random.default_rng(987).standard_normal((2 * h, 2 * w, 3), dtype=np.float32)
+        """(h, w, 3) float32 unit Gaussian noise: a random window of the fixed :func:`noise_bank`."""
         y, x = int(self.rng.integers(h)), int(self.rng.integers(w))
-        return self._bank[y:y + h, x:x + w]
+        return noise_bank(h, w)[y:y + h, x:x + w]
 
     def _compose(self, rgb: np.ndarray, foreground: np.ndarray) -> np.ndarray:
         """Backgrounds where nothing was drawn, colour noise on the surfaces, image augmentations."""
@@ -323,29 +291,22 @@ class DetectionSampleGenerator:
         for b in range(B):
             img = rgb[b].astype(np.float32)
             field = rng.uniform(0.85, 1.15, (int(rng.integers(2, 6)), int(rng.integers(2, 8)), 3)).astype(np.float32)
-            cv2.multiply(img, cv2.resize(field, (w, h), interpolation=cv2.INTER_CUBIC), dst=img)
+            multiply_field(img, field, cv2.INTER_CUBIC)
             if not foreground[b].all():
                 kind = int(rng.integers(0, 5))
                 c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
                 if kind == 0:
-                    bg = np.empty((h, w, 3), np.float32)
-                    bg[:] = c0
+                    bg = flat_background(h, w, c0)
                 elif kind == 1:
-                    a = rng.uniform(0, 2 * np.pi)
-                    ramp = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]) @ [math.cos(a), math.sin(a)]
-                    ramp = (ramp - ramp.min()) / max(np.ptp(ramp), 1e-6)
-                    cg = (c0 + ramp[:, None] * (c1 - c0)).reshape(2, 2, 3).astype(np.float32)
-                    bg = cv2.resize(cg, (w, h), interpolation=cv2.INTER_LINEAR)
+                    bg = gradient_background(h, w, c0, c1, rng.uniform(0, 2 * np.pi))
                 elif kind == 2:
                     grid = rng.uniform(0, 255, (int(rng.integers(2, 8)), int(rng.integers(2, 10)), 3))
-                    bg = cv2.resize(grid.astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
+                    bg = grid_background(grid, h, w, cv2.INTER_CUBIC)
                 elif kind == 3:
-                    small = rng.uniform(0, 255, (h // 8 + 1, w // 8 + 1, 3)).astype(np.float32)
-                    bg = cv2.resize(small, (w, h), interpolation=cv2.INTER_NEAREST if rng.random() < 0.5
-                                    else cv2.INTER_LINEAR)
+                    small = rng.uniform(0, 255, (h // 8 + 1, w // 8 + 1, 3))
+                    bg = grid_background(small, h, w, cv2.INTER_NEAREST if rng.random() < 0.5 else cv2.INTER_LINEAR)
                 else:  # random flat rectangles and discs: clutter with edges, never an object
-                    bg = np.empty((h, w, 3), np.float32)
-                    bg[:] = c0
+                    bg = flat_background(h, w, c0)
                     for _ in range(int(rng.integers(5, 30))):
                         col = tuple(float(v) for v in rng.uniform(0, 255, 3))
                         x, y = int(rng.integers(-w // 4, w)), int(rng.integers(-h // 4, h))
@@ -354,16 +315,14 @@ class DetectionSampleGenerator:
                                           col, -1)
                         else:
                             cv2.circle(bg, (x, y), int(rng.integers(3, h // 4)), col, -1)
+                noise, std = None, 0.0
                 if rng.random() < 0.5:
-                    cv2.scaleAdd(self._noise(h, w), float(rng.uniform(0, 12)), bg, dst=bg)
-                cv2.copyTo(bg, (~foreground[b]).view(np.uint8), img)
+                    noise = self._noise(h, w)
+                    std = float(rng.uniform(0, 12))
+                paste_background(img, bg, foreground[b], noise, std)
             contrast, bright = rng.uniform(0.7, 1.3), rng.normal(0, 12)
             gain = rng.uniform(0.9, 1.1, 3)
-            mean = float(img.mean())
-            M = np.zeros((3, 4), np.float32)
-            M[[0, 1, 2], [0, 1, 2]] = contrast * gain
-            M[:, 3] = mean * (1 - contrast) * gain + bright
-            img = cv2.transform(img, M)
+            img = photometric(img, contrast, gain, bright)
             if rng.random() < 0.5:
                 cv2.scaleAdd(self._noise(h, w), float(rng.uniform(1, 6)), img, dst=img)
             if rng.random() < 0.25:

@@ -8,7 +8,7 @@ the dataset the run belongs to (recorded in the config): the split's images are 
 Each step: a batch of rendered images and their encoded targets -> :class:`CenterNet` ->
 :func:`~cosy_cli.detection.model.detection_loss` (focal heatmap loss + GIoU box loss) ->
 Adam. Learning rate: linear warm-up, then constant or cosine decay to 5 % at ``iterations``
-(:func:`cosy_cli.training.train.learning_rate`). An exponential moving average of the weights
+(:func:`cosy_cli.training.loop.learning_rate`). An exponential moving average of the weights
 (decay ``ema``) is kept and is what gets exported. Rendering runs in ``workers`` spawned worker
 processes (0: in the training process). channels-last memory layout on the CPU (about 20 %
 faster here).
@@ -19,15 +19,14 @@ RNG state, config; atomic; every ``checkpoint_every`` steps, at the end and on C
 PID`` of a background run, whose SIGINT the shell ignores) also saves a checkpoint. ``resume``
 continues from the checkpoint (settings that shape the model and the data must match;
 ``iterations``, ``device``, ``workers``, intervals may change); without it a run folder with a
-checkpoint is refused unless ``overwrite``.
+checkpoint is refused unless ``overwrite``. That machinery is shared with the pose networks'
+training: :mod:`cosy_cli.training.loop`.
 """
 
 from __future__ import annotations
 
 import copy
 import json
-import os
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -35,12 +34,10 @@ import numpy as np
 
 from ..conf import merge_conf
 from ..errors import CosyError
-from ..io.atomic import atomic_path, write_json, write_text
+from ..io.atomic import atomic_path
+from ..training import loop
+from ..training.loop import CHECKPOINT, CONFIG, LOG, PLOT, RESUMABLE_CHANGES, read_log  # noqa: F401
 
-CHECKPOINT = "checkpoint.pt"
-CONFIG = "config.json"
-LOG = "log.csv"
-PLOT = "loss.png"
 LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "loss_heat", "loss_box", "objects_per_image", "images_per_s"]
 METADATA_KEY = "cosy_detector"
 
@@ -68,7 +65,6 @@ DEFAULT_CONF = {
     "checkpoint_every": 200,
     "log_every": 20,
 }
-RESUMABLE_CHANGES = {"iterations", "device", "workers", "checkpoint_every", "log_every"}
 
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
@@ -110,85 +106,20 @@ def model_config(conf: dict, obj_ids):
 
 def load_dataset_objects(dataset: str | Path):
     """({obj_id: trimesh mesh (mm)}, K (3x3), (width, height)) of a BOP dataset folder."""
-    from ..io import bop
-    from ..objects import ObjectDatabase
-
-    dataset = Path(dataset)
-    if not dataset.is_dir():
-        raise CosyError("dataset folder not found", path=dataset)
-    db = ObjectDatabase.from_models_dir(dataset / "models")
-    if len(db) == 0:
-        raise CosyError("no objects in models_info.json", path=dataset / "models" / "models_info.json")
+    db, K, size = loop.load_dataset(dataset)
     meshes = {int(o.obj_id): o.mesh for o in db}
-    cam = dataset / "camera.json"
-    if cam.is_file():
-        ci = bop.read_camera(cam)
-        return meshes, ci.K, (ci.width, ci.height)
+    if K is not None:
+        return meshes, K, size
     from ..synth.scenes import camera_matrix
 
     return meshes, camera_matrix(640, 480), (640, 480)
 
 
-# ---------------------------------------------------------------------------------- log
-def read_log(path: Path) -> list[dict]:
-    """Rows of a detector run's log.csv as dicts of numbers ([] if none)."""
-    from ..training.train import read_log as _read
-
-    return _read(path)
-
-
-def _fmt(v) -> str:
-    return str(v) if isinstance(v, (int, np.integer)) else f"{v:.6g}"
-
-
-def _truncate_log(path: Path, step: int) -> None:
-    rows = [r for r in read_log(path) if r["step"] <= step]
-    lines = [",".join(LOG_FIELDS)] + [",".join(_fmt(r[k]) for k in LOG_FIELDS) for r in rows]
-    write_text(path, "\n".join(lines) + "\n")
-
-
+# ---------------------------------------------------------------------------------- training
 def write_plot(out: Path) -> None:
     """loss.png of a run: total, heatmap and box losses against the step (log scale)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = read_log(Path(out) / LOG)
-    if not rows:
-        return
-    steps = np.array([r["step"] for r in rows])
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
-    for key, label in (("loss_total", "total"), ("loss_heat", "heatmap (focal)"), ("loss_box", "box (1 - GIoU)")):
-        ax.plot(steps, [r[key] for r in rows], label=label, lw=1.5 if key == "loss_total" else 1)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss")
-    ax.set_title(f"{Path(out).name}: detector training loss")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    with atomic_path(Path(out) / PLOT) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-
-
-# ---------------------------------------------------------------------------------- training
-def _stop_on_sigterm() -> Callable[[], None]:
-    """Make SIGTERM raise KeyboardInterrupt (so ``kill PID`` of a background run saves a
-    checkpoint like Ctrl-C: shells start background jobs with SIGINT ignored). Returns the
-    function that restores the previous handler. No-op outside the main thread."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, handler)
-    return lambda: signal.signal(signal.SIGTERM, old)
+    loop.write_plot(out, [("loss_total", "total"), ("loss_heat", "heatmap (focal)"), ("loss_box", "box (1 - GIoU)")],
+                    "loss", f"{Path(out).name}: detector training loss")
 
 
 def _to_device(t: dict, device):
@@ -207,47 +138,20 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     """Train (or resume) a detector in run folder ``out``; returns {"step", "samples", "loss",
     "checkpoint"}. See the module docstring."""
     import torch
-    from tqdm import tqdm
 
-    from ..training.train import learning_rate
     from .data import DetectionSampleGenerator, DetectionStream, batch_targets
     from .model import CenterNet, detection_loss
 
     conf = resolve_conf(conf)
     out = Path(out)
-    ckpt_path = out / CHECKPOINT
-    if ckpt_path.exists() and not resume and not overwrite:
-        raise CosyError("run folder already holds a checkpoint: continue it with --resume or start again with "
-                        "--overwrite", path=out)
-    if resume and not ckpt_path.is_file():
-        raise CosyError("nothing to resume: no checkpoint.pt in the run folder", path=out)
+    loop.check_run_folder(out, resume, overwrite)
 
     meshes, K, image_size = load_dataset_objects(dataset)
     obj_ids = sorted(meshes)
     record = dict(conf, dataset=str(Path(dataset).resolve()), split=split, obj_ids=obj_ids,
                   camera_K=np.asarray(K).tolist(), image_size=list(image_size))
-
-    ckpt = None
-    if resume:
-        try:
-            ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        except Exception as e:
-            raise CosyError(f"unreadable checkpoint: {e}", path=ckpt_path) from None
-        old = ckpt["config"]
-        diff = sorted(k for k in set(old) | set(record) if k not in RESUMABLE_CHANGES and old.get(k) != record.get(k))
-        if diff:
-            detail = "; ".join(f"{k}: {old.get(k)!r} in the run, {record.get(k)!r} now" for k in diff)
-            raise CosyError(f"cannot resume with different settings ({detail})", path=ckpt_path)
-    elif overwrite:
-        for name in (CHECKPOINT, LOG, PLOT, CONFIG):
-            (out / name).unlink(missing_ok=True)
-
-    torch.set_num_threads(os.cpu_count() or 1)
-    want_cuda = conf["device"] == "cuda"
-    if want_cuda and not torch.cuda.is_available():
-        log("warning: --device cuda but no CUDA device is available: training on the CPU")
-    device = torch.device("cuda" if want_cuda and torch.cuda.is_available() else "cpu")
-    torch.manual_seed(conf["seed"])
+    ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite)
+    device = loop.select_device(conf, log)
     mcfg = model_config(conf, obj_ids)
     model = CenterNet(mcfg)
     ema = copy.deepcopy(model)
@@ -257,22 +161,14 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
         model.load_state_dict(ckpt["model"]["state_dict"])
         ema.load_state_dict(ckpt["ema"]["state_dict"])
         opt.load_state_dict(ckpt["optimizer"])
-        step, samples, last = int(ckpt["step"]), int(ckpt["samples"]), dict(ckpt.get("loss", {}))
-        torch.set_rng_state(ckpt["rng"]["torch"])
-        _truncate_log(out / LOG, step)
+        step, samples, last = loop.resume_progress(ckpt, out, LOG_FIELDS)
     fmt = torch.channels_last if device.type == "cpu" else torch.contiguous_format
     model.to(device, memory_format=fmt).train()
     ema.to(device).eval()
     for p in ema.parameters():
         p.requires_grad_(False)
-    for group in opt.param_groups:
-        for p in group["params"]:
-            for k, v in opt.state.get(p, {}).items():
-                if torch.is_tensor(v) and k != "step":
-                    opt.state[p][k] = v.to(device)
-
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / CONFIG, record)
+    loop.optimizer_to(opt, device)
+    loop.write_config(out, record)
 
     data_seed = np.random.SeedSequence([conf["seed"], step])  # a resumed run draws new scenes
     gen_kw = dict(max_objects=conf["max_objects"], p_table=conf["p_table"], min_visib=conf["min_visib"])
@@ -292,93 +188,49 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
             return batch_targets(gen.batch(conf["batch_size"]), mcfg)
         return next(it)
 
-    def save() -> None:
-        ck = {"model": model.checkpoint(), "ema": ema.checkpoint(), "optimizer": opt.state_dict(), "step": step,
-              "samples": samples, "loss": last, "config": record, "rng": {"torch": torch.get_rng_state()},
-              "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        with atomic_path(ckpt_path) as tmp:
-            torch.save(ck, tmp)
-        write_plot(out)
-
-    acc = {"total": 0.0, "heat": 0.0, "box": 0.0, "objects": 0.0}
-    n_acc, t_acc, t_run0 = 0, 0.0, time.time()
-    old_rows = read_log(out / LOG) if resume else []
-    t_offset = old_rows[-1]["time_s"] if old_rows else 0.0
-    new_log = not (out / LOG).is_file()
-    logf = open(out / LOG, "a", newline="")
-    if new_log:
-        logf.write(",".join(LOG_FIELDS) + "\n")
-
-    def flush_log(lr: float) -> None:
-        nonlocal acc, n_acc, t_acc, last
-        if n_acc == 0:
-            return
-        last = {k: acc[k] / n_acc for k in ("total", "heat", "box")}
-        row = {"step": step, "time_s": t_offset + time.time() - t_run0, "lr": lr, "loss_total": last["total"],
-               "loss_heat": last["heat"], "loss_box": last["box"], "objects_per_image": acc["objects"] / n_acc,
-               "images_per_s": n_acc * conf["batch_size"] / max(t_acc, 1e-9)}
-        logf.write(",".join(_fmt(row[k]) for k in LOG_FIELDS) + "\n")
-        logf.flush()
-        acc = {k: 0.0 for k in acc}
-        n_acc, t_acc = 0, 0.0
-
-    lr = learning_rate(conf, step)
     decay = conf["ema"]
-    restore_term = _stop_on_sigterm()
     ema_params = list(ema.parameters())
     model_params = list(model.parameters())
-    bar = tqdm(total=conf["iterations"], initial=min(step, conf["iterations"]), desc="train detector", unit="step",
-               disable=not progress, dynamic_ncols=True)
-    try:
-        while step < conf["iterations"]:
-            t0 = time.time()
-            b = next_batch()
-            n_obj = float(np.mean(np.asarray(b["n_obj"])))
-            t = _to_device(b, device)
-            x = t.pop("images").contiguous(memory_format=fmt)
-            lr = learning_rate(conf, step)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            heat, box = model(x)
-            terms = detection_loss(heat, box, t, mcfg.stride, conf["box_weight"])
-            opt.zero_grad(set_to_none=True)
-            terms["total"].backward()
-            opt.step()
-            step += 1
-            samples += conf["batch_size"]
-            with torch.no_grad():
-                d = min(decay, (1 + step) / (10 + step))  # short runs: the average warms up
-                torch._foreach_mul_(ema_params, d)
-                torch._foreach_add_(ema_params, model_params, alpha=1 - d)
-                for eb, mb in zip(ema.buffers(), model.buffers()):
-                    eb.copy_(mb)
-            for k in ("total", "heat", "box"):
-                acc[k] += float(terms[k].detach())
-            acc["objects"] += n_obj
-            n_acc += 1
-            t_acc += time.time() - t0
-            bar.update(1)
-            bar.set_postfix(loss=f"{acc['total'] / n_acc:.3f}", lr=f"{lr:.1e}")
-            if n_acc >= conf["log_every"] or step == conf["iterations"] or step % conf["checkpoint_every"] == 0:
-                flush_log(lr)
-            if step % conf["checkpoint_every"] == 0 and step < conf["iterations"]:
-                save()
-    except KeyboardInterrupt:
-        flush_log(lr)
-        logf.close()
-        save()
-        log(f"interrupted: checkpoint saved at step {step} in {ckpt_path} (continue with --resume)")
-        raise
-    finally:
-        bar.close()
-        restore_term()
+
+    def train_step(step: int):
+        b = next_batch()
+        n_obj = float(np.mean(np.asarray(b["n_obj"])))
+        t = _to_device(b, device)
+        x = t.pop("images").contiguous(memory_format=fmt)
+        lr = loop.learning_rate(conf, step)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        heat, box = model(x)
+        terms = detection_loss(heat, box, t, mcfg.stride, conf["box_weight"])
+        opt.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        opt.step()
+        done = step + 1  # steps done, this one included
+        with torch.no_grad():
+            d = min(decay, (1 + done) / (10 + done))  # short runs: the average warms up
+            torch._foreach_mul_(ema_params, d)
+            torch._foreach_add_(ema_params, model_params, alpha=1 - d)
+            for eb, mb in zip(ema.buffers(), model.buffers()):
+                eb.copy_(mb)
+        values = {k: float(terms[k].detach()) for k in ("total", "heat", "box")}
+        return lr, dict(values, objects=n_obj), {}
+
+    def log_row(means: loop.Means):
+        last = means.means(("total", "heat", "box"))
+        return last, {"loss_total": last["total"], "loss_heat": last["heat"], "loss_box": last["box"],
+                      "objects_per_image": means.mean("objects"), "images_per_s": means.rate(conf["batch_size"])}
+
+    def cleanup() -> None:
+        nonlocal it
         if gen is not None:
             gen.close()
         it = None
-    logf.close()
-    save()
-    log(f"trained detector to step {step} ({samples} images); checkpoint: {ckpt_path}")
-    return {"step": step, "samples": samples, "loss": last, "checkpoint": ckpt_path}
+
+    return loop.run_loop(
+        out, conf, record, step=step, samples=samples, loss=last, train_step=train_step, log_row=log_row,
+        checkpoint=lambda: {"model": model.checkpoint(), "ema": ema.checkpoint(), "optimizer": opt.state_dict()},
+        rng=lambda: loop.rng_state(numpy=False), plot=write_plot, log_fields=LOG_FIELDS, resume=resume,
+        unit="images", loss_format="{:.3f}", cleanup=cleanup, sigterm=True, log=log, progress=progress)
 
 
 # ---------------------------------------------------------------------------------- export
@@ -395,21 +247,10 @@ def run_kind(run: str | Path) -> str | None:
 
 def load_run(run: str | Path, use_ema: bool = True):
     """(CenterNet in eval mode on the CPU, checkpoint dict) of a detector run folder."""
-    import torch
-
     from .model import CenterNet
 
-    path = Path(run) / CHECKPOINT
-    if not Path(run).is_dir():
-        raise CosyError("run folder not found", path=run)
-    if not path.is_file():
-        raise CosyError("no checkpoint.pt in the run folder (train one with `cosy train detector`)", path=run)
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-        net = CenterNet.from_checkpoint(ck["ema" if use_ema and "ema" in ck else "model"])
-    except Exception as e:
-        raise CosyError(f"unreadable detector checkpoint: {e}", path=path) from None
-    return net.eval(), ck
+    return loop.load_run(run, lambda ck: CenterNet.from_checkpoint(ck["ema" if use_ema and "ema" in ck else "model"]),
+                         "cosy train detector", "detector checkpoint")
 
 
 def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset: int = 17) -> Path:
@@ -462,7 +303,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     n_params = sum(p.numel() for p in net.parameters())
     w, h = cfg.input_size
     ow, oh = cfg.output_size
-    card = "\n".join([
+    loop.write_model_card(out, [
         f"# {out.name}: cosy 2D object detector",
         "",
         f"- objects (category_id = BOP obj_id): {', '.join(str(o) for o in cfg.obj_ids)} (models of {c['dataset']})",
@@ -482,13 +323,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"- training: {ck['step']} steps, {ck['samples']} images, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         f"- final training loss (last logged mean): {loss_txt}",
-        f"- checkpoint saved: {ck.get('saved', 'unknown')}; exported: "
-        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}",
-        f"- measured accuracy: {accuracy or 'not measured'}",
-        "",
-    ])
-    write_text(out.with_suffix(".md"), card)
-    log(f"exported {out} and {out.with_suffix('.md')}")
+    ], ck, accuracy, log)
     return out
 
 

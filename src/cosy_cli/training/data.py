@@ -40,6 +40,7 @@ All lengths in mm, poses ``T_cam_obj`` (4x4, OpenCV camera). Deterministic under
 from __future__ import annotations
 
 import atexit
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -117,7 +118,166 @@ def _default_camera():
     return camera_matrix(640, 480), (640, 480)
 
 
-class SampleGenerator:
+# ---------------------------------------------------------------------- shared randomisation
+# Used by SampleGenerator here and by cosy_cli.detection.data.DetectionSampleGenerator.
+
+class RendererOwner:
+    """Base of the generators that own an OpenGL renderer: built on first use by
+    ``_make_renderer()`` (so that generators can be made inside worker processes), freed by
+    :meth:`close`; pickling is refused (``_pickle_instead`` says what to pickle)."""
+
+    _renderer = None
+    _pickle_instead = "its arguments"
+
+    def _make_renderer(self):
+        raise NotImplementedError
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            self._renderer = self._make_renderer()
+        return self._renderer
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __getstate__(self):
+        raise TypeError(f"{type(self).__name__} holds an OpenGL context: pickle {self._pickle_instead} instead")
+
+
+def hsv_to_rgb(h, s, v) -> np.ndarray:
+    """Vectorised HSV (each (n,), 0..1) -> (n, 3) RGB 0..1."""
+    h = np.asarray(h) % 1.0
+    i = np.floor(h * 6).astype(int) % 6
+    f = h * 6 - np.floor(h * 6)
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    table = np.stack([np.stack(c, -1) for c in ((v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q))])
+    return table[i, np.arange(len(h))]
+
+
+def random_colors(rng: np.random.Generator, n: int, p=(0.4, 0.2, 0.4), brown_hue=(0.05, 0.12),
+                  brown_sat=(0.25, 0.6), sat=(0.3, 0.9), val=(0.35, 0.95)) -> np.ndarray:
+    """(n, 3) RGB 0..1 flat object colours: greys, browns or any hue, with probabilities ``p``;
+    hue, saturation and value ranges of the browns and of the others."""
+    kind = rng.choice(3, size=n, p=list(p))
+    grey = np.clip(rng.uniform(0.2, 0.95, (n, 1)) + rng.normal(0, 0.03, (n, 3)), 0, 1)
+    hue = np.where(kind == 1, rng.uniform(*brown_hue, n), rng.uniform(0, 1, n))
+    s = np.where(kind == 1, rng.uniform(*brown_sat, n), rng.uniform(*sat, n))
+    v = rng.uniform(*val, n)
+    return np.where((kind == 0)[:, None], grey, hsv_to_rgb(hue, s, v))
+
+
+def random_light_dirs(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3) unit directions the light travels (camera frame): into the scene, within ~75 deg
+    of the optical axis."""
+    theta = np.radians(rng.uniform(0, 75, n))
+    phi = rng.uniform(0, 2 * np.pi, n)
+    return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
+
+
+def render_in_light_groups(renderer, rng: np.random.Generator, Ks: np.ndarray, ids: np.ndarray, T: np.ndarray,
+                           tiles: np.ndarray, size, colors: np.ndarray, light_groups: int,
+                           intensity=(0.35, 1.0), ambient=(0.05, 0.5)) -> tuple[np.ndarray, np.ndarray]:
+    """Render B = len(Ks) images (size (w, h), intrinsics Ks (B, 3, 3)) of the instances ``ids``
+    at poses ``T`` (n, 4, 4) mm, in image order ``tiles`` (n,), with flat ``colors`` (n, 3) (NaN:
+    the mesh's own), in ``min(light_groups, B)`` groups of consecutive images that share a random
+    light (:func:`random_light_dirs`, intensity and ambient uniform in the given ranges), one
+    render call each. Returns (rgb (B, h, w, 3) uint8, instance (B, h, w) int32: index into
+    ``ids`` of the visible instance, -1 where nothing is drawn)."""
+    w, h = size
+    B = len(Ks)
+    rgb = np.empty((B, h, w, 3), np.uint8)
+    inst = np.empty((B, h, w), np.int32)
+    G = min(light_groups, B)
+    edges = np.linspace(0, B, G + 1).astype(int)
+    light_dirs = random_light_dirs(rng, G)
+    light_intensity = rng.uniform(*intensity, G)
+    light_ambient = rng.uniform(*ambient, G)
+    for g in range(G):
+        b0, b1 = edges[g], edges[g + 1]
+        if b1 <= b0:
+            continue
+        i0, i1 = np.searchsorted(tiles, [b0, b1])
+        out = renderer.render_crops(Ks[b0:b1], ids[i0:i1], T[i0:i1], (w, h), colors=colors[i0:i1],
+                                    light_dir=light_dirs[g], light_intensity=float(light_intensity[g]),
+                                    ambient=float(light_ambient[g]), tiles=tiles[i0:i1] - b0)
+        rgb[b0:b1] = out.rgb
+        inst[b0:b1] = np.where(out.instance >= 0, out.instance + i0, -1)
+    return rgb, inst
+
+
+@functools.lru_cache(maxsize=4)
+def noise_bank(h: int, w: int) -> np.ndarray:
+    """(2h, 2w, 3) float32 unit Gaussian noise, fixed (seed 987) and read-only: windows of it at
+    random offsets stand for fresh noise per image, which costs more than the rest of the
+    compositing together."""
+    bank = np.random.default_rng(987).standard_normal((2 * h, 2 * w, 3), dtype=np.float32)
+    bank.flags.writeable = False
+    return bank
+
+
+def multiply_field(img: np.ndarray, field: np.ndarray, interpolation: int) -> None:
+    """``img`` (h, w, 3) float32 *= the small colour field (gh, gw, 3) resized to it, in place."""
+    import cv2
+
+    h, w = img.shape[:2]
+    cv2.multiply(img, cv2.resize(field, (w, h), interpolation=interpolation), dst=img)
+
+
+def flat_background(h: int, w: int, color) -> np.ndarray:
+    """(h, w, 3) float32 image of one colour (0..255)."""
+    bg = np.empty((h, w, 3), np.float32)
+    bg[:] = color
+    return bg
+
+
+def gradient_background(h: int, w: int, c0, c1, angle: float) -> np.ndarray:
+    """(h, w, 3) float32 linear gradient from colour ``c0`` to ``c1`` (0..255) along direction
+    ``angle`` (rad, image x towards y): the colours of the four corners, resized bilinearly
+    (exact for a linear ramp)."""
+    import cv2
+
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])  # (x, y)
+    ramp = corners @ np.array([np.cos(angle), np.sin(angle)])
+    ramp = (ramp - ramp.min()) / max(np.ptp(ramp), 1e-6)
+    cg = (c0 + ramp[:, None] * (c1 - c0)).reshape(2, 2, 3).astype(np.float32)
+    return cv2.resize(cg, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def grid_background(grid: np.ndarray, h: int, w: int, interpolation: int) -> np.ndarray:
+    """(h, w, 3) float32: the small random colour grid (gh, gw, 3) resized (smooth blobs, or
+    coarse blocks with nearest-neighbour interpolation)."""
+    import cv2
+
+    return cv2.resize(grid.astype(np.float32), (w, h), interpolation=interpolation)
+
+
+def paste_background(img: np.ndarray, bg: np.ndarray, foreground: np.ndarray, noise: np.ndarray | None = None,
+                     noise_std: float = 0.0) -> None:
+    """Copy ``bg`` (h, w, 3) float32, plus ``noise_std`` x ``noise`` (a noise-bank window) if
+    given, into ``img`` where ``foreground`` (h, w) bool is False, in place (``bg`` too)."""
+    import cv2
+
+    if noise is not None:
+        cv2.scaleAdd(noise, float(noise_std), bg, dst=bg)
+    cv2.copyTo(bg, (~foreground).view(np.uint8), img)
+
+
+def photometric(img: np.ndarray, contrast: float, gain, bright: float, offset: float = 0.0) -> np.ndarray:
+    """``((img - mean) * contrast + mean) * gain + bright + offset`` (gain per channel, mean over
+    the image) as one affine colour map; float32 (h, w, 3) in and out."""
+    import cv2
+
+    mean = float(img.mean())
+    M = np.zeros((3, 4), np.float32)
+    M[[0, 1, 2], [0, 1, 2]] = contrast * gain
+    M[:, 3] = mean * (1 - contrast) * gain + bright + offset
+    return cv2.transform(img, M)
+
+
+class SampleGenerator(RendererOwner):
     """Batches of training samples for the ``kind`` = "refiner" or "coarse" network.
 
     meshes_or_db: {obj_id: trimesh.Trimesh (mm)} or an ObjectDatabase (its meshes, surface
@@ -220,35 +380,26 @@ class SampleGenerator:
 
     # ------------------------------------------------------------------ renderer
 
-    @property
-    def renderer(self):
-        if self._renderer is None:
-            from ..rendering import SceneRenderer
+    _pickle_instead = "its arguments (TrainingStream)"
 
-            w, h = self.crop_size
-            r = SceneRenderer(self.meshes, w, h)
-            if self.n_color_variants > 0:
-                vrng = np.random.default_rng(12345)  # fixed: the variants are the same for every seed
-                for v in range(self.n_color_variants):
-                    for obj_id in self.obj_ids:
-                        m = self.meshes[int(obj_id)].copy()
-                        n = len(m.vertices)
-                        base = vrng.uniform(0.15, 0.95, 3)
-                        noise = vrng.normal(0.0, vrng.uniform(0.05, 0.2), (n, 1)) + vrng.normal(0.0, 0.04, (n, 3))
-                        c = np.clip(base + noise, 0, 1)
-                        rgba = np.concatenate([np.round(c * 255), np.full((n, 1), 255)], 1).astype(np.uint8)
-                        m.visual = __import__("trimesh").visual.ColorVisuals(m, vertex_colors=rgba)
-                        r.add_mesh(int(obj_id) + VARIANT_ID_OFFSET * (v + 1), m)
-            self._renderer = r
-        return self._renderer
+    def _make_renderer(self):
+        from ..rendering import SceneRenderer
 
-    def close(self):
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-    def __getstate__(self):
-        raise TypeError("SampleGenerator holds an OpenGL context: pickle its arguments (TrainingStream) instead")
+        w, h = self.crop_size
+        r = SceneRenderer(self.meshes, w, h)
+        if self.n_color_variants > 0:
+            vrng = np.random.default_rng(12345)  # fixed: the variants are the same for every seed
+            for v in range(self.n_color_variants):
+                for obj_id in self.obj_ids:
+                    m = self.meshes[int(obj_id)].copy()
+                    n = len(m.vertices)
+                    base = vrng.uniform(0.15, 0.95, 3)
+                    noise = vrng.normal(0.0, vrng.uniform(0.05, 0.2), (n, 1)) + vrng.normal(0.0, 0.04, (n, 3))
+                    c = np.clip(base + noise, 0, 1)
+                    rgba = np.concatenate([np.round(c * 255), np.full((n, 1), 255)], 1).astype(np.uint8)
+                    m.visual = __import__("trimesh").visual.ColorVisuals(m, vertex_colors=rgba)
+                    r.add_mesh(int(obj_id) + VARIANT_ID_OFFSET * (v + 1), m)
+        return r
 
     # ------------------------------------------------------------------ sampling
 
@@ -369,7 +520,7 @@ class SampleGenerator:
         n_inst = len(tiles)
 
         # --- colours: flat random colours, or a vertex-colour-noise copy of the mesh
-        colors = self._random_colors(n_inst)
+        colors = random_colors(rng, n_inst)  # greys, browns, saturated colours (T-LESS-like and beyond)
         render_ids = self.obj_ids[all_index].copy()
         if self.p_vertex_colors > 0:
             use_var = rng.random(n_inst) < self.p_vertex_colors
@@ -379,25 +530,8 @@ class SampleGenerator:
 
         # --- observed crops, in light groups
         renderer = self.renderer
-        rgb = np.empty((B, h, w, 3), np.uint8)
-        inst = np.empty((B, h, w), np.int32)
-        G = min(self.light_groups, B)
-        edges = np.linspace(0, B, G + 1).astype(int)
-        light_dirs = self._random_light_dirs(G)
-        intensity = rng.uniform(0.35, 1.0, G)
-        ambient = rng.uniform(0.05, 0.5, G)
-        for g in range(G):
-            b0, b1 = edges[g], edges[g + 1]
-            if b1 <= b0:
-                continue
-            i0, i1 = np.searchsorted(tiles, [b0, b1])
-            out = renderer.render_crops(K_crop[b0:b1], render_ids[i0:i1], all_T[i0:i1], (w, h),
-                                        colors=colors[i0:i1], light_dir=light_dirs[g],
-                                        light_intensity=float(intensity[g]), ambient=float(ambient[g]),
-                                        tiles=tiles[i0:i1] - b0)
-            rgb[b0:b1] = out.rgb
-            ins = out.instance
-            inst[b0:b1] = np.where(ins >= 0, ins + i0, -1)
+        rgb, inst = render_in_light_groups(renderer, rng, K_crop, render_ids, all_T, tiles, (w, h), colors,
+                                           self.light_groups, intensity=(0.35, 1.0), ambient=(0.05, 0.5))
         observed_mask = inst == target_pos[:, None, None]
         foreground = inst >= 0
 
@@ -420,33 +554,7 @@ class SampleGenerator:
             out["visib_fract"] = observed_mask.sum((1, 2)) / np.maximum(sil.sum((1, 2)), 1)
         return out
 
-    # ------------------------------------------------------------------ randomisation helpers
-
-    def _random_colors(self, n: int) -> np.ndarray:
-        """(n, 3) RGB 0..1: greys, browns, saturated colours (T-LESS-like and beyond)."""
-        rng = self.rng
-        kind = rng.choice(3, size=n, p=[0.4, 0.2, 0.4])
-        grey = np.clip(rng.uniform(0.2, 0.95, (n, 1)) + rng.normal(0, 0.03, (n, 3)), 0, 1)
-        hue = np.where(kind == 1, rng.uniform(0.05, 0.12, n), rng.uniform(0, 1, n))
-        sat = np.where(kind == 1, rng.uniform(0.25, 0.6, n), rng.uniform(0.3, 0.9, n))
-        val = rng.uniform(0.35, 0.95, n)
-        col = _hsv_to_rgb(hue, sat, val)
-        return np.where((kind == 0)[:, None], grey, col)
-
-    def _random_light_dirs(self, n: int) -> np.ndarray:
-        """(n, 3) unit directions the light travels (camera frame): into the scene, within ~75 deg
-        of the optical axis."""
-        rng = self.rng
-        theta = np.radians(rng.uniform(0, 75, n))
-        phi = rng.uniform(0, 2 * np.pi, n)
-        return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
-
-    def _noise_bank(self, h: int, w: int) -> np.ndarray:
-        """(2h, 2w, 3) float32 unit Gaussian noise (fixed), cropped at random offsets per sample:
-        fresh noise per pixel costs more than the rest of the compositing together."""
-        if getattr(self, "_bank", None) is None or self._bank.shape[:2] != (2 * h, 2 * w):
-            self._bank = np.random.default_rng(987).standard_normal((2 * h, 2 * w, 3), dtype=np.float32)
-        return self._bank
+    # ------------------------------------------------------------------ compositing
 
     def _compose(self, rgb: np.ndarray, foreground: np.ndarray) -> np.ndarray:
         """Backgrounds behind, low-frequency colour noise on the objects, image augmentations.
@@ -457,7 +565,7 @@ class SampleGenerator:
 
         rng = self.rng
         B, h, w, _ = rgb.shape
-        bank = self._noise_bank(h, w)
+        bank = noise_bank(h, w)
         field = rng.uniform(0.8, 1.2, (B, 4, 5, 3)).astype(np.float32)  # colour noise on the objects
         kinds = rng.integers(0, 4 if self._pool is not None else 3, B)
         c0 = rng.uniform(0, 255, (B, 3))
@@ -476,25 +584,19 @@ class SampleGenerator:
         bright = rng.normal(0, 15, B)
         blur = rng.random(B) < 0.3
         sigma = rng.uniform(0.3, 1.2, B)
-        # linear gradients: values at the four corners, bilinear resize (exact for a linear ramp)
-        corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])  # (x, y)
-        ramp = corners @ np.stack([np.cos(a), np.sin(a)])  # (4, B)
-        ramp = (ramp - ramp.min(0)) / np.maximum(np.ptp(ramp, 0), 1e-6)
 
         out = np.empty((B, h, w, 3), np.uint8)
         for b in range(B):
             img = rgb[b].astype(np.float32)
-            cv2.multiply(img, cv2.resize(field[b], (w, h), interpolation=cv2.INTER_LINEAR), dst=img)
+            multiply_field(img, field[b], cv2.INTER_LINEAR)
             k = kinds[b]
             if k == 0:
-                bg = np.empty((h, w, 3), np.float32)
-                bg[:] = c0[b]
+                bg = flat_background(h, w, c0[b])
             elif k == 1:
-                cg = (c0[b] + ramp[:, b, None] * (c1[b] - c0[b])).reshape(2, 2, 3).astype(np.float32)
-                bg = cv2.resize(cg, (w, h), interpolation=cv2.INTER_LINEAR)
+                bg = gradient_background(h, w, c0[b], c1[b], a[b])
             elif k == 2:
                 gh, gw = grid_hw[b]
-                bg = cv2.resize(grids[b, :gh, :gw], (w, h), interpolation=cv2.INTER_LINEAR)
+                bg = grid_background(grids[b, :gh, :gw], h, w, cv2.INTER_LINEAR)
             else:
                 src = self._pool[pool_pick[b]]
                 if flips[b, 0]:
@@ -503,18 +605,12 @@ class SampleGenerator:
                     src = src[::-1]
                 bg = np.roll(src, tuple(shifts[b]), (0, 1)).astype(np.float32)
             y, x = noise_at[b, 0]
-            cv2.scaleAdd(bank[y:y + h, x:x + w], float(bg_noise[b]), bg, dst=bg)
-            cv2.copyTo(bg, (~foreground[b]).view(np.uint8), img)
+            paste_background(img, bg, foreground[b], bank[y:y + h, x:x + w], bg_noise[b])
             if img_noise[b] > 0:
                 y, x = noise_at[b, 1]
                 cv2.scaleAdd(bank[y:y + h, x:x + w], float(img_noise[b]), img, dst=img)
             if self.augment:
-                # (img - mean) * contrast + mean, then * gain + bright, as one affine map
-                mean = float(img.mean())
-                M = np.zeros((3, 4), np.float32)
-                M[[0, 1, 2], [0, 1, 2]] = contrast[b] * gain[b]
-                M[:, 3] = mean * (1 - contrast[b]) * gain[b] + bright[b] + 0.5  # + 0.5: round below
-                img = cv2.transform(img, M)
+                img = photometric(img, contrast[b], gain[b], bright[b], 0.5)  # + 0.5: round below
                 if blur[b]:
                     img = cv2.GaussianBlur(img, (0, 0), float(sigma[b]))
             else:
@@ -522,16 +618,6 @@ class SampleGenerator:
             np.clip(img, 0, 255, out=img)
             out[b] = img
         return out
-
-
-def _hsv_to_rgb(h, s, v) -> np.ndarray:
-    """Vectorised HSV (each (n,), 0..1) -> (n, 3) RGB 0..1."""
-    h = np.asarray(h) % 1.0
-    i = np.floor(h * 6).astype(int) % 6
-    f = h * 6 - np.floor(h * 6)
-    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
-    table = np.stack([np.stack(c, -1) for c in ((v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q))])
-    return table[i, np.arange(len(h))]
 
 
 # ---------------------------------------------------------------------- torch wrapper
@@ -625,4 +711,6 @@ def synthetic_source(n_points: int = 1000):
 
 
 __all__ = ["SampleGenerator", "TrainingStream", "make_loader", "canonical_pose", "depth_from_box", "perturb_poses",
-           "Perturbation", "DEFAULT_PERTURBATION", "CANONICAL_ROTATION", "synthetic_source"]
+           "Perturbation", "DEFAULT_PERTURBATION", "CANONICAL_ROTATION", "synthetic_source", "RendererOwner",
+           "hsv_to_rgb", "random_colors", "random_light_dirs", "render_in_light_groups", "noise_bank", "multiply_field", "flat_background",
+           "gradient_background", "grid_background", "paste_background", "photometric"]

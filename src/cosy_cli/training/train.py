@@ -21,15 +21,12 @@ Run folder: ``checkpoint.pt`` (model + optimiser + step + RNG states + config, a
 (appended every ``log_every`` steps: means over those steps) and ``loss.png`` (updated at each
 checkpoint). ``resume=True`` continues from the checkpoint (the settings that shape the model and
 the data must match, ``iterations`` may grow); without it a run folder with a checkpoint is refused
-unless ``overwrite``.
+unless ``overwrite``. The run folder, log and loop machinery is shared with the detector's training:
+:mod:`cosy_cli.training.loop`.
 """
 
 from __future__ import annotations
 
-import csv
-import math
-import os
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -37,12 +34,9 @@ import numpy as np
 
 from ..conf import merge_conf
 from ..errors import CosyError
-from ..io.atomic import atomic_path, write_json, write_text
+from . import loop
+from .loop import CHECKPOINT, CONFIG, LOG, PLOT, RESUMABLE_CHANGES, learning_rate, read_log  # noqa: F401
 
-CHECKPOINT = "checkpoint.pt"
-CONFIG = "config.json"
-LOG = "log.csv"
-PLOT = "loss.png"
 LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "loss_xy", "loss_z", "loss_rot", "samples_per_s"]
 
 DEFAULT_CONF = {
@@ -64,8 +58,6 @@ DEFAULT_CONF = {
     "checkpoint_every": 200,
     "log_every": 10,
 }
-# Settings that may differ between a run and its resumption.
-RESUMABLE_CHANGES = {"iterations", "device", "workers", "checkpoint_every", "log_every"}
 
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
@@ -90,19 +82,6 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     return c
 
 
-def learning_rate(conf: dict, step: int) -> float:
-    """LR of step ``step`` (0-based): linear warm-up, then constant or cosine to 5 % at ``iterations``."""
-    lr = conf["lr"]
-    w = conf["warmup"]
-    if w > 0 and step < w:
-        return lr * (step + 1) / w
-    if conf["schedule"] == "cosine":
-        span = max(1, conf["iterations"] - w)
-        t = min(1.0, (step - w) / span)
-        return lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * t)))
-    return lr
-
-
 def curriculum(conf: dict, step: int) -> float:
     """Perturbation scale of the refiner's input poses at ``step``, quantised to 0.05."""
     c0 = conf["curriculum_start"]
@@ -111,76 +90,14 @@ def curriculum(conf: dict, step: int) -> float:
 
 
 def _load_objects(dataset: Path, n_points: int, seed: int):
-    from ..io import bop
-    from ..objects import ObjectDatabase
-
-    dataset = Path(dataset)
-    if not dataset.is_dir():
-        raise CosyError("dataset folder not found", path=dataset)
-    db = ObjectDatabase.from_models_dir(dataset / "models", n_points=n_points, seed=seed)
-    if len(db) == 0:
-        raise CosyError("no objects in models_info.json", path=dataset / "models" / "models_info.json")
-    cam = dataset / "camera.json"
-    K = size = None
-    if cam.is_file():
-        ci = bop.read_camera(cam)
-        K, size = ci.K, (ci.width, ci.height)
-    return db, K, size
+    """(ObjectDatabase, K or None, (width, height) or None) of a dataset (see :func:`loop.load_dataset`)."""
+    return loop.load_dataset(dataset, n_points=n_points, seed=seed)
 
 
 def _write_plot(out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = read_log(out / LOG)
-    if not rows:
-        return
-    steps = np.array([r["step"] for r in rows])
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
-    for key, label in (("loss_total", "total"), ("loss_xy", "image-plane xy"), ("loss_z", "depth z"),
-                       ("loss_rot", "rotation")):
-        ax.plot(steps, [r[key] for r in rows], label=label, lw=1.5 if key == "loss_total" else 1)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("disentangled symmetric L1 loss (mm)")
-    ax.set_title(f"{out.name}: training loss")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    with atomic_path(out / PLOT) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-
-
-def read_log(path: Path) -> list[dict]:
-    """Rows of a run's log.csv as dicts of numbers ([] if there is none)."""
-    path = Path(path)
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return [{k: (int(v) if k == "step" else float(v)) for k, v in r.items()} for r in csv.DictReader(f)]
-
-
-def _truncate_log(path: Path, step: int) -> None:
-    """Drop log rows after ``step`` (logged after the last checkpoint of an interrupted run)."""
-    rows = [r for r in read_log(path) if r["step"] <= step]
-    lines = [",".join(LOG_FIELDS)] + [",".join(_fmt(r[k]) for k in LOG_FIELDS) for r in rows]
-    write_text(path, "\n".join(lines) + "\n")
-
-
-def _fmt(v) -> str:
-    return str(v) if isinstance(v, int) else f"{v:.6g}"
-
-
-def _rng_state(gen) -> dict:
-    import torch
-
-    st = {"torch": torch.get_rng_state(), "numpy_generator": None}
-    if gen is not None:
-        st["numpy_generator"] = gen.rng.bit_generator.state
-    return st
+    loop.write_plot(out, [("loss_total", "total"), ("loss_xy", "image-plane xy"), ("loss_z", "depth z"),
+                          ("loss_rot", "rotation")], "disentangled symmetric L1 loss (mm)",
+                    f"{Path(out).name}: training loss")
 
 
 def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False,
@@ -188,7 +105,6 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     """Train (or resume) a PoseNet in run folder ``out``; returns a summary dict
     {"step", "samples", "loss" (last logged means), "checkpoint"}. See the module docstring."""
     import torch
-    from tqdm import tqdm
 
     from ..singleview.losses import disentangled_loss, pad_symmetries
     from ..singleview.model import PoseNet, prepare_inputs
@@ -196,38 +112,13 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
 
     conf = resolve_conf(conf)
     out = Path(out)
-    ckpt_path = out / CHECKPOINT
-    if ckpt_path.exists() and not resume and not overwrite:
-        raise CosyError("run folder already holds a checkpoint: continue it with --resume or start again with "
-                        "--overwrite", path=out)
-    if resume and not ckpt_path.is_file():
-        raise CosyError("nothing to resume: no checkpoint.pt in the run folder", path=out)
+    loop.check_run_folder(out, resume, overwrite)
 
     db, K, image_size = _load_objects(Path(dataset), conf["n_points"], conf["seed"])
     obj_ids = [int(o) for o in db.obj_ids]
     record = dict(conf, dataset=str(Path(dataset).resolve()), split=split, obj_ids=obj_ids)
-
-    ckpt = None
-    if resume:
-        try:
-            ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        except Exception as e:
-            raise CosyError(f"unreadable checkpoint: {e}", path=ckpt_path) from None
-        old = ckpt["config"]
-        diff = sorted(k for k in set(old) | set(record) if k not in RESUMABLE_CHANGES and old.get(k) != record.get(k))
-        if diff:
-            detail = "; ".join(f"{k}: {old.get(k)!r} in the run, {record.get(k)!r} now" for k in diff)
-            raise CosyError(f"cannot resume with different settings ({detail})", path=ckpt_path)
-    elif overwrite:
-        for name in (CHECKPOINT, LOG, PLOT, CONFIG):
-            (out / name).unlink(missing_ok=True)
-
-    torch.set_num_threads(os.cpu_count() or 1)
-    want_cuda = conf["device"] == "cuda"
-    if want_cuda and not torch.cuda.is_available():
-        log("warning: --device cuda but no CUDA device is available: training on the CPU")
-    device = torch.device("cuda" if want_cuda and torch.cuda.is_available() else "cpu")
-    torch.manual_seed(conf["seed"])
+    ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite)
+    device = loop.select_device(conf, log)
 
     w, h = conf["crop_size"]
     model = PoseNet(conf["kind"], conf["backbone"], conf["n_inputs"], (w, h))
@@ -239,18 +130,10 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
         model.load_state_dict(ckpt["model"]["state_dict"])
         model.to(device)
         opt.load_state_dict(ckpt["optimizer"])
-        step, samples, last = int(ckpt["step"]), int(ckpt["samples"]), dict(ckpt.get("loss", {}))
-        torch.set_rng_state(ckpt["rng"]["torch"])
-        _truncate_log(out / LOG, step)
+        step, samples, last = loop.resume_progress(ckpt, out, LOG_FIELDS)
     model.to(device).train()
-    for group in opt.param_groups:  # optimiser state tensors follow the model
-        for p in group["params"]:
-            for k, v in opt.state.get(p, {}).items():
-                if torch.is_tensor(v) and k != "step":
-                    opt.state[p][k] = v.to(device)
-
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / CONFIG, record)
+    loop.optimizer_to(opt, device)
+    loop.write_config(out, record)
 
     points = torch.as_tensor(np.stack([o.points for o in db]), dtype=torch.float32, device=device)  # (n_obj, P, 3)
     syms = pad_symmetries([o.symmetries for o in db]).to(device)  # (n_obj, S, 4, 4)
@@ -259,7 +142,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     data_seed = np.random.SeedSequence([conf["seed"], step])  # a resumed run draws new samples
     gen, loader, it, loader_c = None, None, None, None
 
-    def next_batch(c: float) -> dict:
+    def next_batch(c: float, step: int) -> dict:
         nonlocal gen, loader, it, loader_c
         if conf["workers"] == 0:
             if gen is None:
@@ -276,102 +159,48 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
             it = iter(loader)
         return {k: (v.numpy() if torch.is_tensor(v) else v) for k, v in next(it).items()}
 
-    def save() -> None:
-        ck = {"model": model.checkpoint(), "optimizer": opt.state_dict(), "step": step, "samples": samples,
-              "loss": last, "config": record, "rng": _rng_state(gen),
-              "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        with atomic_path(ckpt_path) as tmp:
-            torch.save(ck, tmp)
-        _write_plot(out)
+    def train_step(step: int):
+        c = curriculum(conf, step) if conf["kind"] == "refiner" else 1.0
+        b = next_batch(c, step)
+        lr = learning_rate(conf, step)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        x = torch.from_numpy(prepare_inputs(b["observed"], b["rendered"],
+                                            b["rendered_mask"] if conf["n_inputs"] == 7 else None)).to(device)
+        oi = torch.as_tensor(b["obj_index"], dtype=torch.long, device=device)
+        f32 = (lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device))
+        pred = model(x)
+        terms = disentangled_loss(pred, f32(b["T_input"]), f32(b["T_gt"]), f32(b["K_crop"]), points[oi], syms[oi])
+        loss = terms["total"].mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return lr, {k: float(terms[k].detach().mean()) for k in ("total", "xy", "z", "rot")}, {"c": f"{c:.2f}"}
 
-    acc = {k: 0.0 for k in ("total", "xy", "z", "rot")}
-    n_acc, t_acc, t_run0 = 0, 0.0, time.time()
-    t_offset = read_log(out / LOG)[-1]["time_s"] if resume and read_log(out / LOG) else 0.0
-    new_log = not (out / LOG).is_file()
-    logf = open(out / LOG, "a", newline="")
-    if new_log:
-        logf.write(",".join(LOG_FIELDS) + "\n")
-    def flush_log(lr: float) -> None:
-        """One log row: means of the steps since the last row."""
-        nonlocal acc, n_acc, t_acc, last
-        if n_acc == 0:
-            return
-        last = {k: acc[k] / n_acc for k in acc}
-        row = {"step": step, "time_s": t_offset + time.time() - t_run0, "lr": lr,
-               "loss_total": last["total"], "loss_xy": last["xy"], "loss_z": last["z"],
-               "loss_rot": last["rot"], "samples_per_s": n_acc * conf["batch_size"] / max(t_acc, 1e-9)}
-        logf.write(",".join(_fmt(row[k]) for k in LOG_FIELDS) + "\n")
-        logf.flush()
-        acc = {k: 0.0 for k in acc}
-        n_acc, t_acc = 0, 0.0
+    def log_row(means: loop.Means):
+        last = means.means()
+        return last, {"loss_total": last["total"], "loss_xy": last["xy"], "loss_z": last["z"],
+                      "loss_rot": last["rot"], "samples_per_s": means.rate(conf["batch_size"])}
 
-    lr = learning_rate(conf, step)
-    bar = tqdm(total=conf["iterations"], initial=min(step, conf["iterations"]), desc=f"train {conf['kind']}",
-               unit="step", disable=not progress, dynamic_ncols=True)
-    try:
-        while step < conf["iterations"]:
-            t0 = time.time()
-            c = curriculum(conf, step) if conf["kind"] == "refiner" else 1.0
-            b = next_batch(c)
-            lr = learning_rate(conf, step)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            x = torch.from_numpy(prepare_inputs(b["observed"], b["rendered"],
-                                                b["rendered_mask"] if conf["n_inputs"] == 7 else None)).to(device)
-            oi = torch.as_tensor(b["obj_index"], dtype=torch.long, device=device)
-            f32 = (lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device))
-            pred = model(x)
-            terms = disentangled_loss(pred, f32(b["T_input"]), f32(b["T_gt"]), f32(b["K_crop"]), points[oi], syms[oi])
-            loss = terms["total"].mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            step += 1
-            samples += conf["batch_size"]
-            for k in acc:
-                acc[k] += float(terms[k].detach().mean())
-            n_acc += 1
-            t_acc += time.time() - t0
-            bar.update(1)
-            bar.set_postfix(loss=f"{acc['total'] / n_acc:.1f}mm", lr=f"{lr:.1e}", c=f"{c:.2f}")
-            if n_acc >= conf["log_every"] or step == conf["iterations"] or step % conf["checkpoint_every"] == 0:
-                flush_log(lr)
-            if step % conf["checkpoint_every"] == 0 and step < conf["iterations"]:
-                save()
-    except KeyboardInterrupt:
-        flush_log(lr)
-        logf.close()
-        save()
-        log(f"interrupted: checkpoint saved at step {step} in {ckpt_path} (continue with --resume)")
-        raise
-    finally:
-        bar.close()
+    def cleanup() -> None:
+        nonlocal loader, it
         if gen is not None:
             gen.close()
         loader = it = None
-    logf.close()
-    save()
-    log(f"trained {conf['kind']} to step {step} ({samples} samples); checkpoint: {ckpt_path}")
-    return {"step": step, "samples": samples, "loss": last, "checkpoint": ckpt_path}
+
+    return loop.run_loop(
+        out, conf, record, step=step, samples=samples, loss=last, train_step=train_step, log_row=log_row,
+        checkpoint=lambda: {"model": model.checkpoint(), "optimizer": opt.state_dict()},
+        rng=lambda: loop.rng_state(gen.rng if gen is not None else None), plot=_write_plot,
+        log_fields=LOG_FIELDS, resume=resume, unit="samples", loss_format="{:.1f}mm", cleanup=cleanup,
+        log=log, progress=progress)
 
 
 def load_run(run: str | Path) -> tuple[object, dict]:
     """(PoseNet in eval mode on the CPU, checkpoint dict) of run folder ``run``."""
-    import torch
-
     from ..singleview.model import PoseNet
 
-    path = Path(run) / CHECKPOINT
-    if not Path(run).is_dir():
-        raise CosyError("run folder not found", path=run)
-    if not path.is_file():
-        raise CosyError("no checkpoint.pt in the run folder (train one with `cosy train`)", path=run)
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-        net = PoseNet.from_checkpoint(ck["model"])
-    except Exception as e:
-        raise CosyError(f"unreadable checkpoint: {e}", path=path) from None
-    return net.eval(), ck
+    return loop.load_run(run, lambda ck: PoseNet.from_checkpoint(ck["model"]), "cosy train", "checkpoint")
 
 
 def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print) -> Path:
@@ -387,7 +216,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     loss_txt = (f"{loss['total']:.2f} mm (xy {loss['xy']:.2f}, z {loss['z']:.2f}, rotation {loss['rot']:.2f})"
                 if loss else "not logged")
     w, h = net.config.crop_size
-    card = "\n".join([
+    loop.write_model_card(out, [
         f"# {out.name}: CosyPose {c['kind']} network",
         "",
         f"- kind: {c['kind']} (input: observed + rendered RGB crops{', + rendered mask' if c['n_inputs'] == 7 else ''}, "
@@ -400,13 +229,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"- training: {ck['step']} steps, {ck['samples']} samples, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), seed {c['seed']}",
         f"- final training loss (disentangled symmetric L1, last logged mean): {loss_txt}",
-        f"- checkpoint saved: {ck.get('saved', 'unknown')}; exported: "
-        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}",
-        f"- measured accuracy: {accuracy or 'not measured'}",
-        "",
-    ])
-    write_text(out.with_suffix(".md"), card)
-    log(f"exported {out} and {out.with_suffix('.md')}")
+    ], ck, accuracy, log)
     return out
 
 
