@@ -76,12 +76,7 @@ def read_run(run_dir: str | Path) -> dict:
     if not path.is_file():
         raise CosyError("not a cosy run folder: run.json is missing (expected the output folder of cosy run)",
                         path=run_dir)
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise CosyError(f"cannot read ({e})", path=path) from None
-    if not isinstance(doc, dict):
-        raise CosyError("expected a JSON object (the manifest of cosy run)", path=path)
+    doc = _load_json(path, "the manifest of cosy run")
     if "format" in doc and doc["format"] != RUN_FORMAT[0]:
         raise CosyError(f"expected format {RUN_FORMAT[0]!r}, got {doc['format']!r}", path=path)
     for k in ("dataset", "split", "scene_ids"):
@@ -102,7 +97,8 @@ def read_run(run_dir: str | Path) -> dict:
     return out
 
 
-def _load_json(path: Path) -> dict | None:
+def _load_json(path: Path, what: str = "") -> dict | None:
+    """The JSON object in ``path`` (None when there is no such file); CosyError when unreadable."""
     if not path.is_file():
         return None
     try:
@@ -110,7 +106,7 @@ def _load_json(path: Path) -> dict | None:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise CosyError(f"cannot read ({e})", path=path) from None
     if not isinstance(doc, dict):
-        raise CosyError("expected a JSON object", path=path)
+        raise CosyError("expected a JSON object" + (f" ({what})" if what else ""), path=path)
     return doc
 
 
