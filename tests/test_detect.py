@@ -345,3 +345,20 @@ def test_confusion_table_and_evaluate_command(tmp_path, ds, gt_dets):
     csv = pd.read_csv(tmp_path / "ev" / "confusion.csv", index_col=0)
     assert csv.loc[2, "7"] == 3 and list(csv.columns)[-1] == "missed"
     assert "7 x3" in r.output
+
+
+class TwoLabelsOneObject:
+    """One object seen as two look-alikes (overlapping boxes, labels 6 and 7), and a separate object."""
+
+    def detect(self, rgb, min_score, max_per_image, nms_iou):
+        boxes = np.array([[100, 100, 50, 50], [102, 101, 50, 50], [300, 200, 40, 40]], float)
+        return boxes, np.array([0.6, 0.8, 0.5]), np.array([6, 7, 3])
+
+
+def test_agnostic_nms_keeps_the_better_label_of_one_object(tmp_path):
+    kw = dict(scene_ids=[1], detector=TwoLabelsOneObject(), log=lambda m: None, progress=False)
+    stage.main({"min_score": 0.1}, SAMPLES, "test", tmp_path / "a.json", **kw)
+    stage.main({"min_score": 0.1, "agnostic_nms_iou": 0.7}, SAMPLES, "test", tmp_path / "b.json", **kw)
+    a, b = bop.read_detections(tmp_path / "a.json"), bop.read_detections(tmp_path / "b.json")
+    assert sorted(a[a["im_id"] == 0]["obj_id"]) == [3, 6, 7]
+    assert sorted(b[b["im_id"] == 0]["obj_id"]) == [3, 7]

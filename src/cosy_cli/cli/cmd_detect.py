@@ -27,6 +27,9 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @click.option("--max-per-image", type=click.IntRange(min=1), default=None, help="At most N per image, best first [30].")
 @click.option("--nms-iou", type=click.FloatRange(0, 1, min_open=True), default=None,
               help="Detector: per-class NMS IoU threshold [0.5].")
+@click.option("--agnostic-nms-iou", type=click.FloatRange(0, 1, min_open=True), default=None,
+              help="Detector: also suppress boxes of other labels overlapping a better one by more (one object "
+                   "seen as two look-alikes) [1.0: off].")
 @click.option("--min-visib", "min_visib", type=click.FloatRange(0, 1), default=None,
               help="--from-gt: instances at least this visible (visib_fract) [0.1, the BOP targets' threshold].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
@@ -34,7 +37,7 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images, from_gt, min_score, max_per_image,
-           nms_iou, min_visib, providers, overwrite, quiet) -> None:
+           nms_iou, agnostic_nms_iou, min_visib, providers, overwrite, quiet) -> None:
     """2D detections of the dataset's objects, one BOP detections file (CosyPose's first input).
 
     Sources: the shipped detector (default) or --model, --from-json (another tool's detections,
@@ -45,7 +48,7 @@ def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images,
 
     dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
     c = stage.resolve_conf("default", min_score=min_score, max_per_image=max_per_image, nms_iou=nms_iou,
-                           min_visib_fract=min_visib, providers=providers)
+                           agnostic_nms_iou=agnostic_nms_iou, min_visib_fract=min_visib, providers=providers)
     stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids, model=model, from_json=from_json,
                coco_images=coco_images, from_gt=from_gt, log=click.echo, progress=not quiet)
 

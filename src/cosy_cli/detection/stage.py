@@ -43,6 +43,7 @@ CONFS = {
         "min_score": 0.3,        # keep detections scored at least this (model and imported files)
         "max_per_image": 30,     # at most this many per image, best scores first
         "nms_iou": 0.5,          # model: per-class NMS, drop a box overlapping a better one by more
+        "agnostic_nms_iou": 1.0,  # model: also across labels (one object, two labels); 1.0 = off
         "min_visib_fract": 0.1,  # from_gt: boxes of instances at least this visible (BOP targets: 0.1)
         "providers": "cpu",      # onnxruntime: cpu | cuda
     },
@@ -55,10 +56,11 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError(f"detect setting providers: expected cpu or cuda, got {c['providers']!r}")
     try:
         c["min_score"], c["nms_iou"] = float(c["min_score"]), float(c["nms_iou"])
+        c["agnostic_nms_iou"] = float(c["agnostic_nms_iou"])
         c["min_visib_fract"], c["max_per_image"] = float(c["min_visib_fract"]), int(c["max_per_image"])
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None
-    if not (0 <= c["min_score"] <= 1 and 0 < c["nms_iou"] <= 1 and 0 <= c["min_visib_fract"] <= 1
+    if not (0 <= c["min_score"] <= 1 and 0 < c["nms_iou"] <= 1 and 0 < c["agnostic_nms_iou"] <= 1 and 0 <= c["min_visib_fract"] <= 1
             and c["max_per_image"] >= 1):
         raise CosyError("detect settings out of range (min_score, min_visib_fract in [0, 1], nms_iou in (0, 1], "
                         f"max_per_image >= 1): {c}")
@@ -122,6 +124,12 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
         if not (len(boxes) == len(scores) == len(labels)):
             raise RuntimeError(f"detector returned {len(boxes)} boxes, {len(scores)} scores, {len(labels)} labels")
         ok = (boxes[:, 2] > 0) & (boxes[:, 3] > 0) & np.isin(labels, sorted(known))
+        if conf["agnostic_nms_iou"] < 1.0 and len(boxes):
+            from .boxes import nms
+
+            keep = np.zeros(len(boxes), bool)
+            keep[nms(boxes, scores, conf["agnostic_nms_iou"])] = True
+            ok &= keep
         for o in labels[~np.isin(labels, sorted(known))]:
             dropped[int(o)] = dropped.get(int(o), 0) + 1
         n = int(ok.sum())
