@@ -64,7 +64,7 @@ def train(kind, dataset, split, out, backbone, crop, input_size, iterations, bat
     Pose networks: disentangled symmetric loss (mm), Adam with warm-up; the refiner's input-pose
     noise follows a curriculum from 0.3 to 1.0 of its full size over the first half of
     --iterations. Detector: centre-heatmap network (focal + GIoU losses) on rendered scenes.
-    Resumable: Ctrl-C (for the detector also SIGTERM, e.g. `kill PID` of a background run) saves
+    Resumable: Ctrl-C or SIGTERM (e.g. `kill PID` of a background run) saves
     a checkpoint; --resume continues (with a larger --iterations to train longer).
     """
     if kind == "detector":

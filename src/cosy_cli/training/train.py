@@ -192,7 +192,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
         out, conf, record, step=step, samples=samples, loss=last, train_step=train_step, log_row=log_row,
         checkpoint=lambda: {"model": model.checkpoint(), "optimizer": opt.state_dict()},
         rng=lambda: loop.rng_state(gen.rng if gen is not None else None), plot=_write_plot,
-        log_fields=LOG_FIELDS, resume=resume, unit="samples", loss_format="{:.1f}mm", cleanup=cleanup,
+        log_fields=LOG_FIELDS, resume=resume, unit="samples", loss_format="{:.1f}mm", cleanup=cleanup, sigterm=True,
         log=log, progress=progress)
 
 
