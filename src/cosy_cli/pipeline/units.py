@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import subprocess
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterable
@@ -50,23 +51,33 @@ def path_digest(path: str | Path) -> str | None:
     return h.hexdigest()
 
 
-def unit_key(stage: str, conf, inputs: dict) -> str:
+@dataclass(frozen=True)
+class UnitKey:
+    """What a unit's result depends on (``doc``: stage, settings, input digests, code version)
+    and its hash (``digest``)."""
+
+    digest: str
+    doc: dict
+
+
+def unit_key(stage: str, conf, inputs: dict) -> UnitKey:
     """The key of a unit: its stage, settings, input digests (``{name: digest or value}``) and code."""
-    doc = {"stage": stage, "conf": conf, "inputs": inputs, "code": code_version()}
-    return hashlib.sha1(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+    doc = json.loads(json.dumps({"stage": stage, "conf": conf, "inputs": inputs, "code": code_version()},
+                                sort_keys=True, default=str))
+    return UnitKey(hashlib.sha1(json.dumps(doc, sort_keys=True).encode()).hexdigest(), doc)
 
 
 def record_path(folder: Path, unit: str) -> Path:
     return Path(folder) / RECORDS / f"{unit}.json"
 
 
-def is_current(folder: Path, unit: str, key: str) -> bool:
+def is_current(folder: Path, unit: str, key: UnitKey) -> bool:
     """True when the unit's record has ``key`` and all its outputs exist unchanged."""
     try:
         rec = json.loads(record_path(folder, unit).read_text())
     except (OSError, json.JSONDecodeError):
         return False
-    if rec.get("key") != key:
+    if rec.get("key") != key.digest:
         return False
     return all(path_digest(Path(folder) / rel) == digest for rel, digest in rec.get("outputs", {}).items())
 
@@ -78,10 +89,12 @@ def read_record(folder: Path, unit: str) -> dict | None:
         return None
 
 
-def write_record(folder: Path, unit: str, key: str, outputs: Iterable[str], **extra) -> dict:
-    """Record a finished unit: its key and the digest of each output (paths relative to ``folder``)."""
+def write_record(folder: Path, unit: str, key: UnitKey, outputs: Iterable[str], **extra) -> dict:
+    """Record a finished unit: its key (with what it was made from: settings, input digests, code
+    version) and the digest of each output (paths relative to ``folder``)."""
     folder = Path(folder)
-    rec = {"key": key, "outputs": {rel: path_digest(folder / rel) for rel in outputs}, **extra}
+    rec = {"key": key.digest, "made_from": key.doc, "outputs": {rel: path_digest(folder / rel) for rel in outputs},
+           **extra}
     record_path(folder, unit).parent.mkdir(parents=True, exist_ok=True)
     atomic.write_json(record_path(folder, unit), rec)
     return rec
@@ -91,7 +104,7 @@ def forget(folder: Path, unit: str) -> None:
     record_path(folder, unit).unlink(missing_ok=True)
 
 
-def run_unit(folder: Path, unit: str, key: str, outputs: list[str], work: Callable[[], object],
+def run_unit(folder: Path, unit: str, key: UnitKey, outputs: list[str], work: Callable[[], object],
              force: bool = False) -> tuple[bool, float]:
     """Run ``work`` unless the unit is current (and not ``force``); returns (ran, seconds spent now)."""
     import time
