@@ -37,11 +37,14 @@ $(VENV)/.installed: pyproject.toml
 $(VENV): $(VENV)/.installed
 
 DEMO_OUT ?= demo_out
-# The shipped detector when there is one, else the visible GT boxes.
-DEMO_DETECTIONS ?= $(if $(wildcard src/cosy_cli/assets/detector.onnx),,--from-gt)
+# The shipped detector when there is one (then also a run on the visible GT boxes, the upper
+# bound with perfect detections, in DEMO_OUT/with_gt_boxes), else the GT boxes.
+HAVE_DETECTOR := $(wildcard src/cosy_cli/assets/detector.onnx)
 demo: $(VENV)/.installed
 	$(COSY) validate --dataset data_samples --split test
-	$(COSY) run --dataset data_samples --split test --out $(DEMO_OUT) $(DEMO_DETECTIONS)
+	$(COSY) run --dataset data_samples --split test --out $(DEMO_OUT) $(if $(HAVE_DETECTOR),,--from-gt)
+	$(if $(HAVE_DETECTOR),$(COSY) run --dataset data_samples --split test --out $(DEMO_OUT)/with_gt_boxes \
+	  --from-gt --templates-dir $(DEMO_OUT)/templates --to evaluate)
 
 # Single view vs. groups of 4 and 8 views on the sample data (the paper's table) -> results/
 eval-sample: $(VENV)/.installed
