@@ -33,7 +33,6 @@ from typing import Callable
 from ..conf import merge_conf
 from ..errors import CosyError
 from ..io import atomic
-from ..io.cache import file_sha1
 from ..io.dataset import BopDataset
 from . import units
 from .layout import RUN_FORMAT, scene_dir
@@ -72,6 +71,11 @@ def resolve_confs(config: str | dict | None = "default", **overrides) -> dict:
         extra = {k: v for k, v in (overrides.get(stage) or {}).items() if v is not None}
         out[stage] = resolve(base.get(stage), **extra)
     return json.loads(json.dumps(out))
+
+
+def runs(stage: str, first: str, last: str) -> bool:
+    """Whether ``stage`` is among the stages ``first`` .. ``last`` (names of :data:`STAGES`)."""
+    return STAGES.index(first) <= STAGES.index(stage) <= STAGES.index(last)
 
 
 def parse_settings(items) -> dict:
@@ -118,7 +122,6 @@ def run_scene(task: dict) -> dict:
     sdir = scene_dir(run_dir, sid)
     sdir.mkdir(parents=True, exist_ok=True)
     dataset, split, confs = task["dataset"], task["split"], task["confs"]
-    first, last = STAGES.index(task["first"]), STAGES.index(task["last"])
     force = set(task.get("force") or ())
     log_path = sdir / "log.txt"
 
@@ -127,7 +130,7 @@ def run_scene(task: dict) -> dict:
             f.write(msg.rstrip() + "\n")
 
     def wanted(stage: str) -> bool:
-        return first <= STAGES.index(stage) <= last
+        return runs(stage, task["first"], task["last"])
 
     def need(rel: str, stage: str) -> Path:
         p = sdir / rel
@@ -137,11 +140,17 @@ def run_scene(task: dict) -> dict:
         return p
 
     done: dict[str, dict] = {}
+
+    def unit(stage: str, conf, inputs: dict, outputs: list[str], work) -> None:
+        """Run ``work`` for ``stage`` of this scene unless its record is current."""
+        key = units.unit_key(stage, conf, {**inputs, "scene": sid, "dataset": str(dataset), "split": split})
+        ran, dt = units.run_unit(sdir, stage, key, outputs, work, stage in force)
+        done[stage] = {"ran": ran, "time_s": dt}
+
     dets, cands = sdir / "detections.json", sdir / "candidates.csv"
     if task["source"] == "candidates":
         if wanted("detect") or wanted("estimate"):
             src = Path(task["source_file"])
-            key = units.unit_key("candidates", None, {"file": file_sha1(src), "scene": sid})
 
             def copy_candidates():
                 from ..io import bop
@@ -150,57 +159,41 @@ def run_scene(task: dict) -> dict:
                 sel = (res.table["scene_id"] == sid).to_numpy()
                 bop.write_results(cands, bop.PoseResults(res.table[sel].reset_index(drop=True), res.T_cam_obj[sel]))
 
-            ran, dt = units.run_unit(sdir, "estimate", key, ["candidates.csv"], copy_candidates, "estimate" in force)
-            done["estimate"] = {"ran": ran, "time_s": dt}
+            unit("estimate", None, {"candidates_file": _digest_of(src)}, ["candidates.csv"], copy_candidates)
     else:
         if wanted("detect"):
             from ..detection import stage as detect_stage
 
             src = task.get("source_file")
-            inputs = {"source": task["source"], "file": _digest_of(src), "coco_images": _digest_of(task.get("coco_images")),
-                      "scene": sid, "dataset": str(dataset), "split": split}
+            inputs = {"source": task["source"], "file": _digest_of(src), "coco_images": _digest_of(task.get("coco_images"))}
             if task["source"] == "gt":
                 inputs["gt_info"] = _digest_of(BopDataset(dataset, split).scene_file(sid, "scene_gt_info"))
-            key = units.unit_key("detect", confs["detect"], inputs)
-            ran, dt = units.run_unit(sdir, "detect", key, ["detections.json"], lambda: detect_stage.main(
+            unit("detect", confs["detect"], inputs, ["detections.json"], lambda: detect_stage.main(
                 confs["detect"], dataset, split, dets, overwrite=True, scene_ids=[sid],
                 model=src if task["source"] == "model" else None,
                 from_json=src if task["source"] == "json" else None, coco_images=task.get("coco_images"),
-                from_gt=task["source"] == "gt", log=log, progress=False), "detect" in force)
-            done["detect"] = {"ran": ran, "time_s": dt}
+                from_gt=task["source"] == "gt", log=log, progress=False))
         if wanted("estimate"):
             from ..singleview import estimate_stage
 
             need("detections.json", "detect")
-            key = units.unit_key("estimate", confs["estimate"], {
-                "detections": _digest_of(dets), "models": _digest_of(Path(task["models_dir"]) / "models_info.json"),
-                "scene": sid, "dataset": str(dataset), "split": split})
-            outs = ["candidates.csv", "candidates.json", "candidates.timing.csv"]
-            ran, dt = units.run_unit(sdir, "estimate", key, outs, lambda: estimate_stage.main(
-                confs["estimate"], dataset, split, cands, overwrite=True, scene_ids=[sid], detections=dets,
-                models_dir=task["models_dir"], templates_dir=task["templates_dir"], log=log, progress=False),
-                "estimate" in force)
-            done["estimate"] = {"ran": ran, "time_s": dt}
+            unit("estimate", confs["estimate"],
+                 {"detections": _digest_of(dets), "models": _digest_of(Path(task["models_dir"]) / "models_info.json")},
+                 ["candidates.csv", "candidates.json", "candidates.timing.csv"], lambda: estimate_stage.main(
+                     confs["estimate"], dataset, split, cands, overwrite=True, scene_ids=[sid], detections=dets,
+                     models_dir=task["models_dir"], templates_dir=task["templates_dir"], log=log, progress=False))
     if wanted("match"):
         from ..multiview import match_stage
 
         need("candidates.csv", "estimate")
-        key = units.unit_key("match", confs["match"], {"candidates": _digest_of(cands), "dataset": str(dataset),
-                                                       "split": split})
-        ran, dt = units.run_unit(sdir, "match", key, ["match"], lambda: match_stage.main(
-            confs["match"], dataset, split, cands, sdir / "match", overwrite=True, log=log, progress=False),
-            "match" in force)
-        done["match"] = {"ran": ran, "time_s": dt}
+        unit("match", confs["match"], {"candidates": _digest_of(cands)}, ["match"], lambda: match_stage.main(
+            confs["match"], dataset, split, cands, sdir / "match", overwrite=True, log=log, progress=False))
     if wanted("refine"):
         from ..multiview import refine_stage
 
         need("match", "match")
-        key = units.unit_key("refine", confs["refine"], {"match": _digest_of(sdir / "match"), "dataset": str(dataset),
-                                                         "split": split})
-        ran, dt = units.run_unit(sdir, "refine", key, ["refine"], lambda: refine_stage.main(
-            confs["refine"], dataset, split, sdir / "match", sdir / "refine", overwrite=True, log=log, progress=False),
-            "refine" in force)
-        done["refine"] = {"ran": ran, "time_s": dt}
+        unit("refine", confs["refine"], {"match": _digest_of(sdir / "match")}, ["refine"], lambda: refine_stage.main(
+            confs["refine"], dataset, split, sdir / "match", sdir / "refine", overwrite=True, log=log, progress=False))
     return {"scene_id": sid, "units": done}
 
 
@@ -247,7 +240,7 @@ def merge_scene_json(parts: list[Path], out: Path) -> None:
 # ------------------------------------------------------------------------------------------
 # the run
 # ------------------------------------------------------------------------------------------
-def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progress: bool, log) -> list[dict]:
+def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progress: bool) -> list[dict]:
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), desc="scenes", unit="scene", disable=not progress or None, dynamic_ncols=True)
@@ -297,7 +290,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     templates of the coarse step, built when missing (default ``out/templates``).
     """
     t_start = time.perf_counter()
-    if sum(x is not None and x is not False for x in (detections, candidates, model)) + bool(from_gt) > 1:
+    if sum(x is not None for x in (detections, candidates, model)) + bool(from_gt) > 1:
         raise CosyError("give at most one of --detections, --from-gt, --candidates and --model")
     for name, v in (("--from", first), ("--to", last)):
         if v not in STAGES:
@@ -350,7 +343,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
 
     # templates once, before the scenes run in parallel
     templates_dir = Path(templates_dir).resolve() if templates_dir is not None else out / "templates"
-    if source != "candidates" and STAGES.index(first) <= STAGES.index("estimate") <= STAGES.index(last):
+    if source != "candidates" and runs("estimate", first, last):
         from ..singleview import estimate_stage
 
         if estimate_stage.uses_templates(confs["estimate"]):
@@ -366,7 +359,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     if STAGES.index(first) <= STAGES.index("refine"):
         log(f"run: {len(tasks)} scene(s) of {ds.split_dir}, config {config_name}, "
             f"{'dask ' + dask_scheduler if dask_scheduler else f'{workers} worker(s)'} -> {out}")
-        results = _execute(tasks, workers, dask_scheduler, progress, log)
+        results = _execute(tasks, workers, dask_scheduler, progress)
         for stage in SCENE_STAGES:
             rs = [r["units"][stage] for r in results if stage in r["units"]]
             if rs:
@@ -387,7 +380,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
             merged.append(str(dst.relative_to(out)))
 
     evals = {}
-    if STAGES.index(first) <= STAGES.index("evaluate") <= STAGES.index(last):
+    if runs("evaluate", first, last):
         if not has_gt:
             log("run: the split has no GT for every scene; evaluate skipped")
             stage_times["evaluate"] = {"status": "not run (no GT)", "time_s": 0.0}
@@ -411,7 +404,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
                 evals[name] = json.loads((out / "evaluate" / name / "scores.json").read_text())
             stage_times["evaluate"] = {"status": "done" if ran_any else "skipped", "time_s": round(t_ev, 3)}
 
-    if STAGES.index(first) <= STAGES.index("viz") <= STAGES.index(last):
+    if runs("viz", first, last):
         t0 = time.perf_counter()
         try:
             from .. import viz

@@ -35,7 +35,7 @@ from ..errors import CosyError
 from ..io import bop
 from ..io.atomic import atomic_path, write_json
 from ..io.cache import file_sha1
-from ..io.cache import sidecar_stale_reasons as _stale_reasons
+from ..io.cache import reuse_existing_file
 from ..io.dataset import BopDataset
 from ..shipped import ASSETS, shipped  # noqa: F401 (ASSETS: re-exported)
 from ..shipped import model_path as _model_path
@@ -331,13 +331,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     used_refiner = refiner_model if run_conf["refiner"] == "network" else None
     inputs = _inputs_doc(ds, split, scene_ids, detections, models_dir, used_coarse, used_refiner)
 
-    if out.exists() and not overwrite and not keep_steps:
-        reasons = _stale_reasons(doc_path, run_conf, inputs)
-        if not reasons:
-            log(f"estimate: {out} exists and is up to date, skipping (use --overwrite to recompute)")
-            return None
-        raise CosyError(f"exists but was made from other inputs or settings: {'; '.join(reasons)} "
-                        "(use --overwrite to recompute)", path=out)
+    if not keep_steps and reuse_existing_file(out, doc_path, "estimate", overwrite, run_conf, inputs, log):
+        return None
 
     db = ObjectDatabase.from_models_dir(models_dir)
     if from_gt:
