@@ -86,4 +86,12 @@ def xyxy_to_xywh(b) -> np.ndarray:
     return np.concatenate([b[..., :2], b[..., 2:] - b[..., :2]], axis=-1)
 
 
-__all__ = ["box_iou", "nms", "nms_per_class", "xywh_to_xyxy", "xyxy_to_xywh"]
+def clip_xyxy(boxes_xywh, width, height) -> np.ndarray:
+    """(N, 4) [x, y, w, h] px -> (N, 4) [x1, y1, x2, y2] clipped to [0, width] x [0, height] px
+    (``width``/``height``: numbers, or (N,) arrays for boxes of different images)."""
+    b = xywh_to_xyxy(np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4))
+    return np.stack([np.clip(b[:, 0], 0, width), np.clip(b[:, 1], 0, height),
+                     np.clip(b[:, 2], 0, width), np.clip(b[:, 3], 0, height)], 1)
+
+
+__all__ = ["box_iou", "nms", "nms_per_class", "xywh_to_xyxy", "xyxy_to_xywh", "clip_xyxy"]

@@ -36,6 +36,7 @@ from ..errors import CosyError, DatasetProblems
 from ..io import bop, images
 from ..io.atomic import write_json
 from ..io.dataset import BopDataset
+from .boxes import clip_xyxy, xywh_to_xyxy
 
 DET_COLUMNS = ["scene_id", "im_id", "obj_id", "score", "x", "y", "w", "h"]
 TABLE_COLUMNS = DET_COLUMNS + ["time", "segmentation"]
@@ -342,11 +343,9 @@ def check_detections_against_dataset(dets: pd.DataFrame, ds: BopDataset, source,
     has_size = np.array([int(s) in sizes for s in sid], bool) & ~bad_scene & ~bad_image
     W = np.array([sizes[int(s)][0] if h else np.inf for s, h in zip(sid, has_size)], np.float64)
     H = np.array([sizes[int(s)][1] if h else np.inf for s, h in zip(sid, has_size)], np.float64)
-    x1, y1 = xywh[:, 0], xywh[:, 1]
-    x2, y2 = x1 + xywh[:, 2], y1 + xywh[:, 3]
+    x1, y1, x2, y2 = xywh_to_xyxy(xywh).T
     over = np.maximum.reduce([-x1, -y1, x2 - W, y2 - H, np.zeros_like(x1)])
-    cx1, cy1 = np.clip(x1, 0, W), np.clip(y1, 0, H)
-    cx2, cy2 = np.clip(x2, 0, W), np.clip(y2, 0, H)
+    cx1, cy1, cx2, cy2 = clip_xyxy(xywh, W, H).T
     empty = ((cx2 - cx1) <= 0) | ((cy2 - cy1) <= 0)
     bad_box = has_size & np.isfinite(xywh).all(1) & (xywh[:, 2] > 0) & (xywh[:, 3] > 0) & \
         ((over > overhang_px) | empty)

@@ -34,6 +34,7 @@ from ..io.cache import file_sha1, reuse_existing_file
 from ..io.dataset import BopDataset
 from ..shipped import model_path, shipped
 from . import importers
+from .boxes import clip_xyxy, xyxy_to_xywh
 
 SHIPPED_DETECTOR = shipped("detector.onnx")
 FORMAT_VERSION = 1
@@ -92,13 +93,6 @@ def _selected_scenes(ds: BopDataset, scene_ids) -> list[int]:
     return [int(s) for s in scene_ids]
 
 
-def _clip(boxes_xywh: np.ndarray, W: int, H: int) -> np.ndarray:
-    b = np.asarray(boxes_xywh, dtype=np.float64).reshape(-1, 4)
-    x1, y1 = np.clip(b[:, 0], 0, W), np.clip(b[:, 1], 0, H)
-    x2, y2 = np.clip(b[:, 0] + b[:, 2], 0, W), np.clip(b[:, 1] + b[:, 3], 0, H)
-    return np.stack([x1, y1, x2 - x1, y2 - y1], 1)
-
-
 def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, log=print,
                  progress: bool = True) -> tuple[pd.DataFrame, list[float]]:
     """Run ``detector.detect(rgb, min_score, max_per_image, nms_iou) -> (boxes_xywh (N, 4) px,
@@ -118,7 +112,7 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
         boxes, scores, labels = detector.detect(rgb, conf["min_score"], conf["max_per_image"], conf["nms_iou"])
         dt = time.perf_counter() - t0
         times.append(dt)
-        boxes = _clip(boxes, rgb.shape[1], rgb.shape[0])
+        boxes = xyxy_to_xywh(clip_xyxy(boxes, rgb.shape[1], rgb.shape[0]))
         scores = np.asarray(scores, dtype=np.float64).reshape(-1)
         labels = np.asarray(labels).reshape(-1).astype(np.int64)
         if not (len(boxes) == len(scores) == len(labels)):

@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 
 from ..conf import merge_conf
+from ..detection.boxes import clip_xyxy
 from ..detection.importers import DET_COLUMNS, detections_from_gt  # noqa: F401 (DET_COLUMNS: re-exported)
 from ..errors import CosyError
 from ..io import bop
@@ -112,14 +113,7 @@ def check_detections(dets: pd.DataFrame, ds: BopDataset, scene_ids: list[int], o
     return dets[keep].reset_index(drop=True)
 
 
-def clip_boxes(xywh: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(N, 4) x, y, w, h px -> (N, 4) x1, y1, x2, y2 clipped to the image (pixel-edge coords)."""
-    b = np.asarray(xywh, dtype=np.float64).reshape(-1, 4)
-    x1 = np.clip(b[:, 0], 0, width)
-    y1 = np.clip(b[:, 1], 0, height)
-    x2 = np.clip(b[:, 0] + b[:, 2], 0, width)
-    y2 = np.clip(b[:, 1] + b[:, 3], 0, height)
-    return np.stack([x1, y1, x2, y2], 1)
+clip_boxes = clip_xyxy  # (N, 4) x, y, w, h px -> x1, y1, x2, y2 clipped to the image (pixel-edge coords)
 
 
 # ------------------------------------------------------------------------------------------------
