@@ -83,16 +83,6 @@ def keep_best(dets: pd.DataFrame, min_score: float, max_per_image: int) -> pd.Da
     return d[rank < max_per_image]
 
 
-def _selected_scenes(ds: BopDataset, scene_ids) -> list[int]:
-    all_scenes = ds.scene_ids
-    if scene_ids is None:
-        return all_scenes
-    missing = sorted(set(int(s) for s in scene_ids) - set(all_scenes))
-    if missing:
-        raise CosyError(f"scene(s) {missing} not in the split (has {all_scenes})", path=ds.split_dir)
-    return [int(s) for s in scene_ids]
-
-
 def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, log=print,
                  progress: bool = True) -> tuple[pd.DataFrame, list[float]]:
     """Run ``detector.detect(rgb, min_score, max_per_image, nms_iou) -> (boxes_xywh (N, 4) px,
@@ -170,7 +160,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     if coco_images is not None and source != "json":
         raise CosyError("--coco-images goes with --from-json (it maps COCO image ids to BOP scene and image ids)")
     ds = BopDataset(dataset, split)
-    scene_ids = _selected_scenes(ds, scene_ids)
+    scene_ids = ds.select_scenes(scene_ids)
     if not ds.models_info_path.is_file():
         raise CosyError("models_info.json not found (the objects' ids and sizes)", path=ds.models_info_path)
 

@@ -188,14 +188,7 @@ def main(dataset: str | Path, split: str, detections: str | Path, out: str | Pat
     from ..detection.importers import read_detections_any
 
     ds = BopDataset(dataset, split)
-    all_scenes = ds.scene_ids
-    if scene_ids:
-        missing = sorted(set(int(s) for s in scene_ids) - set(all_scenes))
-        if missing:
-            raise CosyError(f"scene(s) {missing} not in the split (has {all_scenes})", path=ds.split_dir)
-        scene_ids = [int(s) for s in scene_ids]
-    else:
-        scene_ids = all_scenes
+    scene_ids = ds.select_scenes(scene_ids or None)
     dets = read_detections_any(detections, ds, coco_images=coco_images)
     uncovered = sorted(set(scene_ids) - set(dets["scene_id"].astype(int).tolist()))
     if uncovered:

@@ -71,6 +71,15 @@ class BopDataset:
             raise CosyError("no scene folders (expected 6-digit names such as 000001)", path=self.split_dir)
         return ids
 
+    def select_scenes(self, scene_ids=None) -> list[int]:
+        """``scene_ids`` as ints, checked to be scenes of the split (None: all of them)."""
+        if scene_ids is None:
+            return list(self.scene_ids)
+        missing = sorted(set(int(s) for s in scene_ids) - set(self.scene_ids))
+        if missing:
+            raise CosyError(f"scene(s) {missing} not in the split (has {self.scene_ids})", path=self.split_dir)
+        return [int(s) for s in scene_ids]
+
     def scene_dir(self, scene_id: int) -> Path:
         return self.split_dir / f"{int(scene_id):06d}"
 

@@ -305,11 +305,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
         raise CosyError("exists, is not empty and is not a cosy run folder (no run.json)", path=out)
     ds = BopDataset(dataset, split)
     dataset = Path(dataset).resolve()
-    all_scenes = ds.scene_ids
-    scene_ids = list(all_scenes) if scene_ids is None else [int(s) for s in scene_ids]
-    missing = sorted(set(scene_ids) - set(all_scenes))
-    if missing:
-        raise CosyError(f"scene(s) {missing} not in the split (scenes: {all_scenes})", path=ds.split_dir)
+    scene_ids = ds.select_scenes(scene_ids)
     for f in (detections, candidates, model, coco_images):
         if f is not None and not Path(f).is_file():
             raise CosyError("file not found", path=f)

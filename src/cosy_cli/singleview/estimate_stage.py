@@ -303,13 +303,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     if (detections is None) == (not from_gt):
         raise CosyError("give either a detections file (--detections) or --from-gt")
     ds = BopDataset(dataset, split, split_type=split_type) if split_type else BopDataset(dataset, split)
-    all_scenes = ds.scene_ids
-    if scene_ids is None:
-        scene_ids = all_scenes
-    else:
-        missing = sorted(set(scene_ids) - set(all_scenes))
-        if missing:
-            raise CosyError(f"scene(s) {missing} not in the split (has {all_scenes})", path=ds.split_dir)
+    scene_ids = ds.select_scenes(scene_ids)
     models_dir = Path(models_dir) if models_dir is not None else ds.models_dir
     first_scene = scene_ids[0] if scene_ids else None
     has_depth = first_scene is not None and bool(ds.image_ids(first_scene)) and \
