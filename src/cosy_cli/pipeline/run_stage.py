@@ -35,7 +35,7 @@ from ..errors import CosyError
 from ..io import atomic
 from ..io.dataset import BopDataset
 from . import units
-from .layout import RUN_FORMAT, scene_dir
+from .layout import MANIFEST, RUN_FORMAT, scene_dir
 
 STAGES = ("detect", "estimate", "match", "refine", "evaluate", "viz")
 SCENE_STAGES = ("detect", "estimate", "match", "refine")
@@ -300,7 +300,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     out = Path(out).resolve()
     if out.exists() and not out.is_dir():
         raise CosyError("exists and is not a folder", path=out)
-    manifest_path = out / "run.json"
+    manifest_path = out / MANIFEST
     if out.is_dir() and any(out.iterdir()) and not manifest_path.is_file():
         raise CosyError("exists, is not empty and is not a cosy run folder (no run.json)", path=out)
     ds = BopDataset(dataset, split)

@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from ..errors import CosyError
+from ..pipeline.layout import MANIFEST
 from .figures import MeshRenderer, group_figure, read_run, reprojection_ious, scene_group_ids, visible_mask_ious
 from .report import write_report
 
@@ -93,7 +94,7 @@ def main(run_dir: str | Path, out: str | Path | None = None, scene_ids=None, ove
         if unknown:
             shown = ", ".join(map(str, all_ids[:20])) + (" ..." if len(all_ids) > 20 else "")
             raise CosyError(f"scene {unknown[0]} is not a scene of this run (its scenes: {shown or 'none'})",
-                            path=run_dir / "run.json", where="scene_ids")
+                            path=run_dir / MANIFEST, where="scene_ids")
     else:
         ids = all_ids
     out = Path(out) if out is not None else run_dir / "figures"

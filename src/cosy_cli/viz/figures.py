@@ -35,7 +35,7 @@ from ..errors import CosyError
 from ..geometry.poses import invert
 from ..io import atomic, bop
 from ..io.dataset import BopDataset
-from ..pipeline.layout import RUN_FORMAT, scene_dir
+from ..pipeline.layout import MANIFEST, RUN_FORMAT, scene_dir
 
 MAX_PNG_BYTES = 1_500_000
 PANEL_WIDTH_IN = 1.75  # inches per view panel
@@ -70,7 +70,7 @@ def read_run(run_dir: str | Path) -> dict:
     """``RUN_DIR/run.json`` checked: a dict with at least dataset (a Path that exists), split and
     scene_ids (list of int). Raises :class:`CosyError` naming the file and what was expected."""
     run_dir = Path(run_dir)
-    path = run_dir / "run.json"
+    path = run_dir / MANIFEST
     if not run_dir.is_dir():
         raise CosyError("run folder not found (expected the output folder of cosy run)", path=run_dir)
     if not path.is_file():

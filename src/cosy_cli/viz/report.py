@@ -16,6 +16,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 from ..io import atomic
+from ..pipeline.layout import MANIFEST
 
 EVALS = (("single_view", "single view"), ("multi_view", "multi-view"))
 # (key of scores.json, label, unit or None), in display order; other numeric keys follow.
@@ -194,7 +195,7 @@ def write_report(run_dir: str | Path, figures: list[Path], out_html: str | Path 
     run_dir = Path(run_dir)
     out_html = Path(out_html) if out_html is not None else run_dir / "report.html"
     base = out_html.parent
-    run, err = (manifest, None) if manifest is not None else _read_json(run_dir / "run.json")
+    run, err = (manifest, None) if manifest is not None else _read_json(run_dir / MANIFEST)
     run = run or {}
     notes = list(notes or [])
     if err:
