@@ -1,8 +1,8 @@
 """Single view vs. multi-view on a dataset (the paper's Table: 1 view, groups of 4 and of 8 views).
 
 Runs `cosy run` (detections: `--from-gt` by default, or the shipped detector with --detector)
-once per group size into RUN_ROOT/vpgN (stages shared by the runs are cached in each run folder;
-templates are built once) and writes a Markdown table of AUC ADD-S, ADD-S < 0.1 d recall and BOP19
+once per group size into RUN_ROOT/vpgN: the first run detects and estimates, the others start at
+match from its single-view candidates and writes a Markdown table of AUC ADD-S, ADD-S < 0.1 d recall and BOP19
 AR to --out.
 
     python benchmarks/eval_sample.py [--dataset data_samples] [--out results/eval_sample.md]
@@ -43,15 +43,18 @@ def main() -> None:
     ds = BopDataset(args.dataset, args.split)
     n_views = max(len(ds.image_ids(s)) for s in ds.scene_ids)
     runs = Path(args.runs)
-    rows = []
+    rows, candidates = [], None
     for g in [int(x) for x in args.groups.split(",")]:
         if g > n_views:
             print(f"skipping groups of {g}: scenes have at most {n_views} views")
             continue
         t0 = time.perf_counter()
-        m = run_stage.main(args.config, args.dataset, args.split, runs / f"vpg{g}", from_gt=not args.detector,
-                           templates_dir=runs / "templates", overrides={"match": {"views_per_group": g}},
-                           last="evaluate", log=lambda s: None, progress=False)
+        # the first run detects and estimates; the others start at match from its candidates
+        source = {"candidates": candidates} if candidates else {"from_gt": not args.detector}
+        m = run_stage.main(args.config, args.dataset, args.split, runs / f"vpg{g}", templates_dir=runs / "templates",
+                           overrides={"match": {"views_per_group": g}}, last="evaluate", log=lambda s: None,
+                           progress=False, **source)
+        candidates = candidates or runs / f"vpg{g}" / "estimate" / "candidates.csv"
         dt = time.perf_counter() - t0
         if not rows:
             rows.append(("1 (single view)", m["metrics"]["single_view"], None))
