@@ -65,9 +65,24 @@ def resolve_scenes(scene, dataset, split, scene_ids):
 
 
 def setup_runtime() -> None:
-    """Environment that must be set before numpy/torch/OpenGL are imported by a command."""
+    """Environment that must be set before numpy/torch/OpenGL are imported by a command; tolerated
+    input problems (:class:`~cosy_cli.errors.CosyWarning`) print as one ``warning: ...`` line each."""
+    import warnings
+
+    from ..errors import CosyWarning
+
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    previous = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, CosyWarning):
+            click.echo(f"warning: {message}", err=True)
+        else:
+            previous(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    warnings.simplefilter("always", CosyWarning)  # one per file is the caller's job, not a filter's
 
 
 def user_errors(fn):
