@@ -1,0 +1,1 @@
+"""Tools that complete or create BOP datasets: ``cosy gt-info``, ``cosy new-dataset``."""
