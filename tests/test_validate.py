@@ -223,7 +223,6 @@ def _truncated_png(root: Path):
 CORRUPTIONS = {
     # name: (corrupt, substrings of the one problem line)
     "missing rgb image": (_rm(S1 / "rgb" / "000001.png"), [str(S1 / "rgb" / "000001.png"), "image 1", "not found"]),
-    "missing scene_gt_info": (_rm(S1 / "scene_gt_info.json"), [str(S1 / "scene_gt_info.json"), "file not found"]),
     "missing model": (_rm(Path("models") / "obj_000002.ply"), ["obj_000002.ply", "model file not found"]),
     "truncated scene_gt": (_truncate(S1 / "scene_gt.json"), [str(S1 / "scene_gt.json"), "invalid JSON"]),
     "non-orthonormal R": (_scale_R, [str(S1 / "scene_gt.json"), "image 1, instance 0 (obj_id 1)",
@@ -269,6 +268,73 @@ def test_several_problems_all_reported(ds):
     assert len(lines) == 4, lines
     for key in ("not found", "not a rotation matrix", "symmetries_discrete[3]", "object behind the camera"):
         assert sum(key in ln for ln in lines) == 1, (key, lines)
+
+
+def _problems_only(res) -> list[str]:
+    return [ln for ln in _problems(res) if not ln.startswith("warning: ")]
+
+
+def _warnings(res) -> list[str]:
+    return [ln for ln in _problems(res) if ln.startswith("warning: ")]
+
+
+def test_missing_scene_gt_info_is_a_warning(ds):
+    _rm(S1 / "scene_gt_info.json")(ds)
+    res = _run(ds)
+    assert res.exit_code == 0, res.output
+    assert _problems_only(res) == []
+    (w,) = _warnings(res)
+    assert str(S1 / "scene_gt_info.json") in w and "no scene_gt_info.json in 1 of 2 scene(s)" in w
+    assert "result:    OK, 1 warning" in res.stdout
+    strict = _run(ds, "--strict")
+    assert strict.exit_code == 2 and "1 warning and --strict" in strict.stderr
+
+
+def _perturb_R(d, eps):
+    """Shear the rotation of image 1, instance 0 so that |R^T R - I| is about ``eps``."""
+    R = np.array(d["1"][0]["cam_R_m2c"]).reshape(3, 3)
+    d["1"][0]["cam_R_m2c"] = (R @ (np.eye(3) + np.array([[0, eps / 2, 0], [0, 0, 0], [0, 0, 0]]))).reshape(-1).tolist()
+
+
+def test_nearly_orthonormal_rotation_is_repaired_with_one_warning(ds):
+    _edit_json(ds / S1 / "scene_gt.json", lambda d: _perturb_R(d, 0.02))
+    res = _run(ds)
+    assert res.exit_code == 0, res.output
+    assert _problems_only(res) == []
+    (w,) = _warnings(res)
+    assert str(S1 / "scene_gt.json") in w and "1 of 9 cam_R_m2c rotations" in w and "image 1, instance 0" in w
+    assert _run(ds, "--strict").exit_code == 2
+
+
+def test_approximate_symmetry_is_a_warning_with_the_figure(ds):
+    # a 1° twist about z added to the 180° turn about x of the 40x60x80 box: the far corners move ~0.9 mm
+    # (tolerance 1.08 mm here): make it 4° (~4 mm, 3.5% of the diameter) for a warning, 15° for an error
+    for deg, warned in ((4.0, True), (15.0, False)):
+        root = ds.parent / f"sym{deg:g}"
+        shutil.copytree(ds, root)
+
+        def f(d):
+            d["1"]["symmetries_discrete"][0] = (_sym((0, 0, 1), deg) @ _sym((1, 0, 0), 180)).reshape(-1).tolist()
+        _edit_json(root / "models" / "models_info.json", f)
+        res = _run(root)
+        if warned:
+            assert res.exit_code == 0, res.output
+            (w,) = _warnings(res)
+            assert "object 1, symmetries_discrete[0]" in w and "approximate symmetry" in w and "% of the" in w, w
+        else:
+            assert res.exit_code == 2, res.output
+            (e,) = _problems_only(res)
+            assert "object 1, symmetries_discrete[0]" in e and "does not map the model onto itself" in e, e
+
+
+def test_camera_file_auto_detected_and_chosen(ds):
+    (ds / "camera.json").rename(ds / "camera_uw.json")
+    res = _run(ds)
+    assert res.exit_code == 0, res.output
+    assert "camera file: camera_uw.json" in res.stdout
+    assert _run(ds, "--camera", "camera_uw.json").exit_code == 0
+    bad = _run(ds, "--camera", "camera_cmu.json")
+    assert bad.exit_code == 2 and "camera_cmu.json: camera file not found" in bad.stderr
 
 
 def test_depth_inconsistent_with_gt(ds):

@@ -97,7 +97,77 @@ def rotation_errors(R: np.ndarray) -> np.ndarray:
     return np.where(np.linalg.det(R) > 0, dev, np.inf)
 
 
-ROTATION_TOL = 1e-3  # tolerated |R^T R - I| (files store rotations with 6-10 significant digits)
+ROTATION_TOL = 1e-3  # |R^T R - I| of a clean rotation (files store 6-10 significant digits): no warning
+# Up to this, a rotation read from a file is accepted and replaced by the nearest rotation, with
+# one warning per file: the published BOP releases (LM-O GT: 1e-2) are orthonormal only that far,
+# and the BOP toolkit accepts them. Beyond it, or det <= 0: an error naming the file and row.
+ROTATION_REPAIR_TOL = 0.05
+ROTATION_MODES = ("repair", "keep_bad", "raw")
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to each R (..., 3, 3) in the Frobenius norm (SVD: U diag(1, 1, d) V^T)."""
+    R = np.asarray(R, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(R)
+    d = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
+
+
+def clean_rotations(R: np.ndarray) -> np.ndarray:
+    """R (..., 3, 3) with every matrix within :data:`ROTATION_REPAIR_TOL` of a rotation replaced by
+    the nearest rotation, the others left as they are. Writers use it: a file read then written
+    holds rotations orthonormal to ~1e-9 (the digits written)."""
+    R = np.array(R, dtype=np.float64, copy=True)
+    flat = R.reshape(-1, 3, 3)
+    if len(flat):
+        err = rotation_errors(flat)
+        fix = (err > 1e-12) & (err <= ROTATION_REPAIR_TOL)
+        if fix.any():
+            flat[fix] = nearest_rotation(flat[fix])
+    return flat.reshape(R.shape)
+
+
+def repair_rotations(R: np.ndarray, where, *, path: str | Path, what: str = "R",
+                     rotations: str = "repair") -> tuple[np.ndarray, np.ndarray]:
+    """Check rotations R (n, 3, 3) read from ``path``; returns (R repaired, |R^T R - I| after repair).
+
+    Every R within :data:`ROTATION_REPAIR_TOL` is replaced by the nearest rotation (SVD). When
+    some were off by more than :data:`ROTATION_TOL`, one :func:`~cosy_cli.errors.warn` for the
+    whole file says how many, the worst deviation and where (``where(i)`` describes row i). Worse
+    ones (or det <= 0): ``rotations="repair"`` raises a :class:`CosyError` naming the first such
+    row; ``"keep_bad"`` returns them as read, their deviation in the second array (> the repair
+    tolerance; 0-ish elsewhere), for a caller that reports each; ``"raw"`` returns R unchecked.
+    """
+    if rotations not in ROTATION_MODES:
+        raise ValueError(f"rotations must be one of {ROTATION_MODES}, got {rotations!r}")
+    R = np.array(R, dtype=np.float64, copy=True).reshape(-1, 3, 3)
+    if len(R) == 0:
+        return R, np.zeros(0)
+    err = rotation_errors(R)
+    if rotations == "raw":
+        return R, err
+    bad = err > ROTATION_REPAIR_TOL
+    if bad.any() and rotations == "repair":
+        i = int(np.flatnonzero(bad)[0])
+        more = int(bad.sum()) - 1
+        raise CosyError(f"{what} is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, det = {np.linalg.det(R[i]):.3g}; "
+                        f"expected orthonormal with det +1, tolerated up to {ROTATION_REPAIR_TOL:g})"
+                        + (f"; {more} more row(s) like it" if more else ""), path=path, where=where(i))
+    off = (err > ROTATION_TOL) & ~bad
+    if off.any():
+        from ..errors import warn
+
+        j = int(np.flatnonzero(off)[np.argmax(err[off])])
+        warn(f"{int(off.sum())} of {len(R)} {what} rotations orthonormal only to |R^T R - I| = {err[j]:.3g} "
+             f"(worst: {where(j)}); replaced by the nearest rotation (tolerated up to {ROTATION_REPAIR_TOL:g})",
+             path=path)
+    fix = (err > 1e-12) & ~bad
+    if fix.any():
+        R[fix] = nearest_rotation(R[fix])
+        err[fix] = rotation_errors(R[fix])
+    return R, err
 
 
 def _fmt(x: float) -> float:
@@ -153,7 +223,9 @@ class SceneCamera:
     extra: dict = field(default_factory=dict)  # other keys, kept for round trips
 
 
-def read_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
+def read_scene_camera(path: str | Path, *, rotations: str = "repair") -> dict[int, SceneCamera]:
+    """``scene_camera.json``: {im_id: SceneCamera}. ``cam_R_w2c`` rotations are checked and repaired
+    as :func:`repair_rotations` does with ``rotations`` ("repair", "keep_bad" or "raw")."""
     path = Path(path)
     data = _top_dict(load_json(path), path)
     out: dict[int, SceneCamera] = {}
@@ -172,7 +244,14 @@ def read_scene_camera(path: str | Path) -> dict[int, SceneCamera]:
                              _numbers(entry["cam_t_w2c"], 3, path, where, "cam_t_w2c"))
         extra = {k: v for k, v in entry.items() if k not in ("cam_K", "depth_scale", "cam_R_w2c", "cam_t_w2c")}
         out[im_id] = SceneCamera(K=K, depth_scale=depth_scale, T_cam_world=T, extra=extra)
-    return dict(sorted(out.items()))
+    out = dict(sorted(out.items()))
+    posed = [im for im, c in out.items() if c.T_cam_world is not None]
+    if posed:
+        R, _ = repair_rotations(np.stack([out[im].T_cam_world[:3, :3] for im in posed]),
+                                lambda i: f"image {posed[i]}", path=path, what="cam_R_w2c", rotations=rotations)
+        for im, Ri in zip(posed, R):
+            out[im].T_cam_world[:3, :3] = Ri
+    return out
 
 
 def write_scene_camera(path: str | Path, cams: Mapping[int, SceneCamera]) -> None:
@@ -181,7 +260,7 @@ def write_scene_camera(path: str | Path, cams: Mapping[int, SceneCamera]) -> Non
         c = cams[im_id]
         e: dict[str, Any] = {"cam_K": _floats(c.K), "depth_scale": _fmt(c.depth_scale)}
         if c.T_cam_world is not None:
-            e["cam_R_w2c"] = _floats(c.T_cam_world[:3, :3])
+            e["cam_R_w2c"] = _floats(clean_rotations(c.T_cam_world[:3, :3]))
             e["cam_t_w2c"] = _floats(c.T_cam_world[:3, 3])
         e.update(c.extra)
         data[str(int(im_id))] = e
@@ -209,7 +288,11 @@ def _read_per_image_lists(path: Path, parse_instance) -> dict:
     return dict(sorted(out.items()))
 
 
-def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
+def read_scene_gt(path: str | Path, *, rotations: str = "repair") -> dict[int, list[GtInstance]]:
+    """``scene_gt.json``: {im_id: [GtInstance]}. ``cam_R_m2c`` rotations are checked and repaired
+    as :func:`repair_rotations` does with ``rotations`` ("repair", "keep_bad" or "raw"): within
+    :data:`ROTATION_REPAIR_TOL` replaced by the nearest rotation (one warning for the file when
+    some were off by more than :data:`ROTATION_TOL`), worse ones an error naming image and instance."""
     path = Path(path)
 
     def parse(inst: Any, where: str) -> GtInstance:
@@ -220,13 +303,21 @@ def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
         t = _numbers(_require(inst, "cam_t_m2c", path, where), 3, path, where, "cam_t_m2c")
         return GtInstance(obj_id=obj_id, T_cam_obj=pose_from_Rt(R, t))
 
-    return _read_per_image_lists(path, parse)
+    out = _read_per_image_lists(path, parse)
+    flat = [(im, k, g) for im, lst in out.items() for k, g in enumerate(lst)]
+    if flat:
+        R, _ = repair_rotations(np.stack([g.T_cam_obj[:3, :3] for _, _, g in flat]),
+                                lambda i: f"image {flat[i][0]}, instance {flat[i][1]} (obj_id {flat[i][2].obj_id})",
+                                path=path, what="cam_R_m2c", rotations=rotations)
+        for (_, _, g), Ri in zip(flat, R):
+            g.T_cam_obj[:3, :3] = Ri
+    return out
 
 
 def write_scene_gt(path: str | Path, gt: Mapping[int, list[GtInstance]]) -> None:
     data = {
         str(int(im_id)): [
-            {"cam_R_m2c": _floats(g.T_cam_obj[:3, :3]), "cam_t_m2c": _floats(g.T_cam_obj[:3, 3]), "obj_id": int(g.obj_id)}
+            {"cam_R_m2c": _floats(clean_rotations(g.T_cam_obj[:3, :3])), "cam_t_m2c": _floats(g.T_cam_obj[:3, 3]), "obj_id": int(g.obj_id)}
             for g in gt[im_id]
         ]
         for im_id in sorted(gt)
@@ -289,7 +380,9 @@ class ModelInfo:
     extra: dict = field(default_factory=dict)
 
 
-def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
+def read_models_info(path: str | Path, *, rotations: str = "repair") -> dict[int, ModelInfo]:
+    """``models_info.json``: {obj_id: ModelInfo}. The rotations of ``symmetries_discrete`` are checked
+    and repaired as :func:`repair_rotations` does with ``rotations`` (one warning for the file)."""
     path = Path(path)
     data = _top_dict(load_json(path), path)
     out: dict[int, ModelInfo] = {}
@@ -322,7 +415,15 @@ def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
         known = {"diameter", "symmetries_discrete", "symmetries_continuous"} | {f"{p}_{a}" for p in ("min", "size") for a in "xyz"}
         extra = {k: v for k, v in e.items() if k not in known}
         out[obj_id] = ModelInfo(diameter, mins, sizes, S, conts, extra)
-    return dict(sorted(out.items()))
+    out = dict(sorted(out.items()))
+    syms = [(o, j) for o, m in out.items() for j in range(len(m.symmetries_discrete))]
+    if syms:
+        R, _ = repair_rotations(np.stack([out[o].symmetries_discrete[j, :3, :3] for o, j in syms]),
+                                lambda i: f"object {syms[i][0]}, symmetries_discrete[{syms[i][1]}]", path=path,
+                                what="symmetries_discrete", rotations=rotations)
+        for (o, j), Ri in zip(syms, R):
+            out[o].symmetries_discrete[j, :3, :3] = Ri
+    return out
 
 
 def write_models_info(path: str | Path, infos: Mapping[int, ModelInfo]) -> None:
@@ -335,7 +436,9 @@ def write_models_info(path: str | Path, infos: Mapping[int, ModelInfo]) -> None:
         for i, a in enumerate("xyz"):
             e[f"size_{a}"] = _fmt(m.size_xyz[i])
         if len(m.symmetries_discrete):
-            e["symmetries_discrete"] = [_floats(S) for S in m.symmetries_discrete]
+            S = np.array(m.symmetries_discrete, dtype=np.float64).reshape(-1, 4, 4)
+            S[:, :3, :3] = clean_rotations(S[:, :3, :3])
+            e["symmetries_discrete"] = [_floats(Sj) for Sj in S]
         if m.symmetries_continuous:
             e["symmetries_continuous"] = [{"axis": _floats(c["axis"]), "offset": _floats(c["offset"])}
                                           for c in m.symmetries_continuous]
@@ -413,12 +516,32 @@ class PoseResults:
         return cls(table, np.asarray(T_cam_obj, dtype=np.float64).reshape(n, 4, 4))
 
 
-def read_results(path: str | Path, *, check_rotations: bool = True) -> PoseResults:
+def _check_complete_rows(path: Path, header: list[str]) -> None:
+    """Refuse a CSV data row with fewer fields than the header (a file cut mid-row), naming the
+    row as the readers do (1-based data row, blank lines skipped)."""
+    lines = np.array(path.read_text(encoding="utf-8", errors="replace").splitlines()[1:], dtype=str)
+    if not len(lines):
+        return
+    lines = lines[np.char.strip(lines) != ""]
+    fields = np.char.count(lines, ",") + 1
+    short = np.flatnonzero(fields < len(header))
+    if len(short):
+        i = int(short[0])
+        raise CosyError(f"{fields[i]} of {len(header)} fields ({','.join(header)}): the row is cut short "
+                        "(a truncated file?)", path=path, where=f"row {i + 1}")
+
+
+def read_results(path: str | Path, *, check_rotations: bool = True, rotations: str | None = None) -> PoseResults:
     """Read a BOP results CSV (``scene_id,im_id,obj_id,score,R,t,time``; R row-major, t in mm).
 
     Raises :class:`CosyError` naming the row (1-based data row, header excluded) on a missing
-    column, a malformed number, a non-finite value or (``check_rotations``) a non-orthonormal R.
+    column, a malformed number, a non-finite value or a non-orthonormal R. Rotations are checked
+    and repaired as :func:`repair_rotations` does with ``rotations`` (default "repair": within
+    :data:`ROTATION_REPAIR_TOL` replaced by the nearest rotation, one warning for the file when
+    some were off by more than :data:`ROTATION_TOL`); ``check_rotations=False`` means "raw".
     """
+    if rotations is None:
+        rotations = "repair" if check_rotations else "raw"
     path = Path(path)
     if not path.is_file():
         raise CosyError("file not found", path=path)
@@ -432,6 +555,7 @@ def read_results(path: str | Path, *, check_rotations: bool = True) -> PoseResul
     missing = [c for c in RESULTS_COLUMNS if c not in df.columns and c != "time"]
     if missing:
         raise CosyError(f"missing column(s) {', '.join(missing)}; expected header {','.join(RESULTS_COLUMNS)}", path=path)
+    _check_complete_rows(path, list(df.columns))
     if "time" not in df.columns:
         df["time"] = "-1"
     n = len(df)
@@ -479,13 +603,7 @@ def read_results(path: str | Path, *, check_rotations: bool = True) -> PoseResul
 
     R = vectors("R", 9).reshape(n, 3, 3)
     t = vectors("t", 3)
-    if check_rotations:
-        err = rotation_errors(R)
-        bad = err > ROTATION_TOL
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise CosyError(f"R is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, det = {np.linalg.det(R[i]):.3g})",
-                            path=path, where=f"row {i + 1}")
+    R, _ = repair_rotations(R, lambda i: f"row {i + 1}", path=path, what="R", rotations=rotations)
     T = np.zeros((n, 4, 4))
     T[:, :3, :3] = R
     T[:, :3, 3] = t
@@ -498,7 +616,7 @@ def format_results(res: PoseResults) -> str:
     tab = res.table
     buf = _io.StringIO()
     buf.write(",".join(RESULTS_COLUMNS) + "\n")
-    R = res.T_cam_obj[:, :3, :3].reshape(-1, 9).tolist()
+    R = clean_rotations(res.T_cam_obj[:, :3, :3]).reshape(-1, 9).tolist()
     t = res.T_cam_obj[:, :3, 3].tolist()
     cols = [tab[c].to_numpy().tolist() for c in ("scene_id", "im_id", "obj_id", "score", "time")]
     for (scene_id, im_id, obj_id, score, time), Ri, ti in zip(zip(*cols), R, t):  # plain floats: fast

@@ -33,6 +33,7 @@ class BopDataset:
     split_type: str | None = None
     sensor: str | None = None
     models_subdir: str = "models"
+    camera_file: str | Path | None = None  # the dataset camera file, relative to root (or absolute); see camera_path
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -138,9 +139,28 @@ class BopDataset:
             self._cache["models_info"] = bop.read_models_info(self.models_info_path)
         return self._cache["models_info"]
 
+    @property
+    def camera_path(self) -> Path | None:
+        """The dataset camera file: ``camera_file`` when given (a CosyError when missing), else
+        ``camera_<split_type>.json``, ``camera.json``, or the only ``camera_*.json`` of the folder
+        (YCB-V ships ``camera_uw.json`` and ``camera_cmu.json``; a copy of one of its splits often
+        only the one it needs). None when there is none, or several and no way to choose."""
+        if self.camera_file is not None:
+            p = Path(self.camera_file)
+            p = p if p.is_absolute() else self.root / p
+            if not p.is_file():
+                raise CosyError("camera file not found", path=p)
+            return p
+        names = ([f"camera_{self.split_type}.json"] if self.split_type else []) + ["camera.json"]
+        for n in names:
+            if (self.root / n).is_file():
+                return self.root / n
+        others = sorted(self.root.glob("camera_*.json"))
+        return others[0] if len(others) == 1 else None
+
     def camera(self) -> bop.CameraInfo | None:
-        p = self.root / "camera.json"
-        return bop.read_camera(p) if p.is_file() else None
+        p = self.camera_path
+        return bop.read_camera(p) if p is not None else None
 
     def targets_path(self) -> Path | None:
         for name in TARGET_FILES:

@@ -873,7 +873,8 @@ def main(models_dir: str | Path, *, write: bool = False, tolerance_mm: float | N
     info_path = models_dir / "models_info.json"
     meshes_on_disk = _list_models(models_dir)
     have_info = info_path.is_file()
-    infos = bop.read_models_info(info_path) if have_info else {}
+    # keep_bad: a declared symmetry that is not a rotation is reported and replaced here, not refused
+    infos = bop.read_models_info(info_path, rotations="keep_bad") if have_info else {}
     if not have_info and not meshes_on_disk:
         raise CosyError("no models_info.json and no obj_XXXXXX.ply meshes in the models folder", path=models_dir)
     known = sorted(infos) if have_info else sorted(meshes_on_disk)
