@@ -409,20 +409,14 @@ def _bad_input_case(tables, tmp_path, kind):
         p[1] = "77"
         lines[4] = ",".join(p)
         expect = "row 4: im_id 77 is not an image of scene"
-    else:  # single view: a copy of the dataset whose scene 1 has one image
-        root = tmp_path / "one_view"
-        shutil.copytree(tables, root)
-        f = root / "test" / "000001" / "scene_camera.json"
-        cams = json.loads(f.read_text())
-        f.write_text(json.dumps({"0": cams["0"]}))
-        lines = [lines[0]] + [line for line in lines[1:] if line.split(",")[0] == "1" and line.split(",")[1] == "0"]
-        expect = "row 1: scene 1 has a single view"
+    else:
+        raise ValueError(kind)  # (a scene of one view is valid input: see tests/test_one_view.py)
     bad = tmp_path / f"{kind}.csv"
     bad.write_text("\n".join(lines) + "\n")
     return root, bad, expect
 
 
-@pytest.mark.parametrize("kind", ["missing_column", "not_rotation", "unknown_obj", "unknown_im", "single_view"])
+@pytest.mark.parametrize("kind", ["missing_column", "not_rotation", "unknown_obj", "unknown_im"])
 def test_bad_input_exit_2_and_nothing_written(tables, tmp_path, kind):
     root, bad, expect = _bad_input_case(tables, tmp_path, kind)
     out = tmp_path / "out" / "match"

@@ -223,6 +223,7 @@ def test_foreign_or_edited_match_dir_and_unconnected_views(tables, tmp_path):
         else:
             doc["groups"][0]["objects"][0]["obj_id"] = value
         (d / "groups.json").write_text(json.dumps(doc))
+        (d / "manifest.json").unlink()  # a hand-edited folder, to be read as it is (see test_stage_integrity.py)
         r = refine(d, tmp_path / f"out_{name}")
         assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output, r.output
         assert not (tmp_path / f"out_{name}").exists()
@@ -235,6 +236,7 @@ def test_foreign_or_edited_match_dir_and_unconnected_views(tables, tmp_path):
         if lonely in (vp["im_id_a"], vp["im_id_b"]):
             vp["linked"], vp["n_inliers"] = False, 0
     (d / "groups.json").write_text(json.dumps(doc))
+    (d / "manifest.json").unlink()
     r = refine(d, tmp_path / "out_cut")
     assert r.exit_code == 0, r.output
     scene = json.loads((tmp_path / "out_cut" / "scene.json").read_text())

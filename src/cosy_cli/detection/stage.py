@@ -15,7 +15,8 @@ Exactly one source:
 
 Output: the BOP detections JSON ``out`` (``cosy estimate --detections`` reads it) and the
 sidecar ``<out stem>.meta.json`` (settings, inputs with their sha1, summary: detections per
-object, mean seconds per image). A current output is reused; one made from other inputs or
+object, mean seconds per image) and ``<out name>.manifest.json`` (the file's sha1 and size, see
+:mod:`cosy_cli.io.manifest`). A current output is reused; one made from other inputs or
 settings is refused unless ``overwrite``.
 """
 
@@ -29,6 +30,7 @@ import pandas as pd
 
 from ..conf import merge_conf
 from ..errors import CosyError
+from ..io import manifest
 from ..io.atomic import write_json
 from ..io.cache import file_sha1, reuse_existing_file
 from ..io.dataset import BopDataset
@@ -218,7 +220,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json(doc_path, summary)
-    importers.write_detections(out, dets)  # last: a complete detections file means the stage finished
+    importers.write_detections(out, dets)  # a complete detections file means the stage finished
+    manifest.write_file_manifest(out, "cosy detect")  # its sha1 + size, checked by cosy estimate
     ms = f", {summary['time_per_image_s'] * 1e3:.0f} ms per image" if times else ""
     log(f"detect: {len(dets)} detections in {summary['images_with_detections']} of {n_images} images from {what}"
         f"{ms} -> {out}")

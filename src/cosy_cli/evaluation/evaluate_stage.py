@@ -26,11 +26,15 @@ Output folder (built atomically):
     of its top-1 match (inf: none).
 ``report.png``
     Recall vs. threshold (ADD-S, MSSD, MSPD, VSD) and per-object ADD-S histograms.
+``manifest.json``
+    sha1 and size of the files above (:mod:`cosy_cli.io.manifest`).
+
+Predictions (and scene.json) written by a cosy stage are checked against that stage's
+manifest first: a file changed or truncated since is refused.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -41,7 +45,7 @@ import pandas as pd
 from .. import __version__
 from ..conf import merge_conf
 from ..errors import CosyError
-from ..io import atomic, bop, cache, images
+from ..io import atomic, bop, cache, images, manifest
 from ..io.dataset import BopDataset
 from . import pose_error, protocols
 
@@ -88,17 +92,6 @@ def _sha1(path: Path | None) -> str | None:
 
 def is_complete(out: Path) -> bool:
     return cache.is_complete(out, OUTPUT_FILES)
-
-
-def _stale_reasons(out: Path, inputs: dict) -> list[str]:
-    """What differs between the inputs recorded in ``out/scores.json`` and ``inputs``."""
-    try:
-        old = json.loads((out / "scores.json").read_text()).get("inputs") or {}
-    except (OSError, json.JSONDecodeError):
-        return ["scores.json unreadable"]
-    new = json.loads(json.dumps(inputs))
-    changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
-    return [f"inputs or settings changed ({', '.join(changed)})"] if changed else []
 
 
 # --------------------------------------------------------------------------------------------
@@ -365,7 +358,9 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
               "metrics": metrics, "conf": conf}
     if scene_ids is not None:
         inputs["scene_ids"] = sorted(int(x) for x in scene_ids)
-    if cache.reuse_existing_output(out, "evaluate", OUTPUT_FILES, overwrite, lambda: _stale_reasons(out, inputs), log):
+    # the settings are part of ``inputs`` (recorded under scores.json "inputs")
+    if cache.reuse_existing_output(out, "evaluate", OUTPUT_FILES, overwrite,
+                                   lambda: cache.sidecar_stale_reasons(out / "scores.json", None, inputs), log):
         return None
 
     warnings: list[str] = []
@@ -378,6 +373,9 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
 
     ds = BopDataset(dataset, split)
     db, models_path = load_models(ds, models_dir, warn)
+    manifest.verify(predictions)  # written by cosy refine / estimate: refused if changed since
+    if scene_json is not None:
+        manifest.verify(scene_json)
     res = bop.read_results(predictions)
     _check_predictions(res, predictions, ds, db)
     gt, T_gt, cams = load_gt(ds, warn)
@@ -493,6 +491,7 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         gt_err.to_csv(tmp / "gt_errors.csv", index=False)
         plots.write_report(tmp / "report.png", scores, curves, gt_err, {o: db[o].diameter for o in db.obj_ids})
         atomic.write_json(tmp / "scores.json", _clean(scores))
+        manifest.write_folder_manifest(tmp, "cosy evaluate", OUTPUT_FILES)
     for k in ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
               "bop19_average_recall_mspd", "auc_adds", "auc_add_or_adds", "recall_adds_0.1d", "vivo_auc_adds",
               "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d", "vivo_auc_adds_scene_targets",

@@ -32,7 +32,9 @@ def reuse_existing_output(out: str | Path, stage: str, output_files: Iterable[st
         return False
     if not is_complete(out, output_files):
         raise CosyError(f"exists but is not a complete {stage} output (use --overwrite to replace it)", path=out)
-    reasons = stale_reasons()
+    from . import manifest
+
+    reasons = stale_reasons() + manifest.folder_stale_reasons(out)
     if reasons:
         raise CosyError(f"exists but was made from other inputs: {'; '.join(reasons)} (use --overwrite to recompute)",
                         path=out)
@@ -47,9 +49,10 @@ def _plain(obj):
     return json.loads(json.dumps(obj))
 
 
-def sidecar_stale_reasons(doc_path: str | Path, conf: dict, inputs: dict) -> list[str]:
-    """Why an output described by the JSON sidecar ``doc_path`` (keys ``conf`` and ``inputs``) was
-    not made from ``conf`` and ``inputs`` (empty: it was)."""
+def sidecar_stale_reasons(doc_path: str | Path, conf: dict | None, inputs: dict) -> list[str]:
+    """Why an output described by the JSON document ``doc_path`` (keys ``conf`` and ``inputs``) was
+    not made from ``conf`` and ``inputs`` (empty: it was). ``conf`` None: the settings are not
+    recorded apart (they are part of ``inputs``)."""
     import json
 
     doc_path = Path(doc_path)
@@ -57,11 +60,14 @@ def sidecar_stale_reasons(doc_path: str | Path, conf: dict, inputs: dict) -> lis
         doc = json.loads(doc_path.read_text())
     except (OSError, json.JSONDecodeError):
         return [f"{doc_path.name} missing or unreadable"]
+    if not isinstance(doc, dict):
+        return [f"{doc_path.name} is not a JSON object"]
     reasons = []
-    old, new = doc.get("conf") or {}, _plain(conf)
-    changed = sorted(k for k in set(new) | set(old) if old.get(k) != new.get(k))
-    if changed:
-        reasons.append(f"settings changed ({', '.join(changed)})")
+    if conf is not None:
+        old, new = doc.get("conf") or {}, _plain(conf)
+        changed = sorted(k for k in set(new) | set(old) if old.get(k) != new.get(k))
+        if changed:
+            reasons.append(f"settings changed ({', '.join(changed)})")
     old, new = doc.get("inputs") or {}, _plain(inputs)
     changed = sorted(k for k in set(new) | set(old) if old.get(k) != new.get(k))
     if changed:
@@ -78,7 +84,12 @@ def reuse_existing_file(out: str | Path, doc_path: str | Path, stage: str, overw
     out = Path(out)
     if overwrite or not out.exists():
         return False
+    from . import manifest
+
     reasons = sidecar_stale_reasons(doc_path, conf, inputs)
+    changed = manifest.mismatch(out, hint=False)
+    if changed is not None:
+        reasons.append(changed)
     if reasons:
         raise CosyError(f"exists but was made from other inputs or settings: {'; '.join(reasons)} "
                         "(use --overwrite to recompute)", path=out)

@@ -22,10 +22,15 @@ read. Output folder (built atomically: an interrupted run leaves nothing under `
     their im_ids), discarded cand_ids, view pairs (with their associations) and timing.
 ``candidates.csv``
     A copy of the input candidates (same rows, same order: cand_id = row).
+``manifest.json``
+    sha1 and size of the four files above (:mod:`cosy_cli.io.manifest`): ``cosy refine``
+    refuses a file changed or truncated since match wrote it.
 
 Groups: one per scene holding all its images (sorted by im_id), or with ``views_per_group`` N
 consecutive groups of N images (a last group of a single image joins the previous one).
-Only scenes with candidates are processed.
+Only scenes with candidates are processed. A group of one view (a scene of one image) has
+nothing to match: its candidates pass through, each an object of its own (``object_id`` 0..),
+and groups.json marks the group ``"single_view": true`` with a ``note``.
 """
 
 from __future__ import annotations
@@ -39,12 +44,12 @@ import numpy as np
 from .. import __version__
 from ..conf import merge_conf
 from ..errors import CosyError
-from ..io import atomic, bop, cache
+from ..io import atomic, bop, cache, manifest
 from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from ..geometry.sampling import farthest_point_subset
-from .matching import LabelTable, MatchParams, match_groups
+from .matching import GroupResult, LabelTable, MatchParams, match_groups
 
 FORMAT_VERSION = 1
 BATCH_CANDIDATES = 2000  # groups are matched together until a batch holds this many candidates
@@ -328,15 +333,24 @@ def _check_inputs(ds: BopDataset, cands: bop.PoseResults, csv_path: Path, known_
             i = int(badim[0])
             raise CosyError(f"im_id {ims[i]} is not an image of scene {s} ({ds.scene_file(int(s), 'scene_camera')} "
                             f"has {len(cams)} images)", path=csv_path, where=_row(i))
-        if len(cams) < 2:
-            raise CosyError(f"scene {s} has a single view (image {next(iter(cams))} in "
-                            f"{ds.scene_file(int(s), 'scene_camera')}): matching needs at least 2 views",
-                            path=csv_path, where=_row(first))
         if known_cameras:
             for im, c in cams.items():
                 if c.T_cam_world is None:
                     raise CosyError("--known-cameras needs cam_R_w2c and cam_t_w2c for every image",
                                     path=ds.scene_file(int(s), "scene_camera"), where=f"image {im}")
+
+
+SINGLE_VIEW_NOTE = "single view: candidates passed through (nothing to match)"
+
+
+def single_view_result(n: int) -> GroupResult:
+    """The matching of a group of one view: each of its ``n`` candidates is an object of its own
+    (object ids 0..n-1 in input order); no view pairs, no associations."""
+    z = np.zeros(0, dtype=np.int64)
+    return GroupResult(object_id=np.arange(n, dtype=np.int64), pair_views=np.zeros((0, 2), dtype=np.int64),
+                       n_inliers=z, T_ab=np.zeros((0, 4, 4)), linked=np.zeros(0, dtype=bool), n_hypotheses=z,
+                       edges=np.zeros((0, 2), dtype=np.int64), edge_dist=np.zeros(0), edge_pair=z,
+                       edge_kept=np.zeros(0, dtype=bool))
 
 
 def _fmt_pose(T: np.ndarray) -> tuple[str, str]:
@@ -375,6 +389,15 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     batch: list[int] = []
     n_batch = 0
 
+    def pass_through(k: int) -> None:
+        """A group of one view: nothing to match; every candidate is an object of its own."""
+        g = groups[k]
+        n_k = len(g["cand_idx"])
+        g["result"] = single_view_result(n_k)
+        g["time_s"] = 0.0
+        object_id[g["cand_idx"]] = g["result"].object_id
+        del g["view"], g["T_cw"]
+
     def flush():
         if not batch:
             return
@@ -408,6 +431,9 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
             if conf["known_cameras"]:
                 cams = ds.scene_camera(s)
                 g["T_cw"] = np.stack([cams[i].T_cam_world for i in g["im_ids"]])
+            if len(g["im_ids"]) == 1:
+                pass_through(gi)
+                continue
             batch.append(gi)
             n_batch += len(idx)
             if n_batch >= BATCH_CANDIDATES or len(batch) >= BATCH_GROUPS:
@@ -452,12 +478,16 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
             objects.append({"object_id": o, "obj_id": int(ob[members[0]]),
                             "cand_ids": [int(c) for c in members], "im_ids": [int(ims[c]) for c in members]})
         members_all = np.flatnonzero(group_of == gi)
-        out_groups.append({
+        entry = {
             "scene_id": g["scene_id"], "group_id": g["group_id"], "im_ids": im_ids,
             "n_candidates": int(len(members_all)), "objects": objects,
             "discarded": [int(c) for c in members_all if object_id[c] < 0],
             "view_pairs": pairs, "time_s": round(g["time_s"], 6),
-        })
+        }
+        if len(im_ids) == 1:
+            entry["single_view"] = True
+            entry["note"] = SINGLE_VIEW_NOTE
+        out_groups.append(entry)
     (tmp / "view_pairs.csv").write_text("\n".join(vlines) + "\n")
     (tmp / "candidates.csv").write_text(bop.format_results(cands))
     doc = {
@@ -470,6 +500,7 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
         "summary": summary, "groups": out_groups,
     }
     (tmp / "groups.json").write_text(json.dumps(doc, separators=(",", ":")) + "\n")  # compact: C encoder
+    manifest.write_folder_manifest(tmp, "cosy match", OUTPUT_FILES)  # checked by cosy refine
 
 
 def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_csv: str | Path, out: str | Path,
@@ -483,6 +514,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
         return None
     csv_path = Path(candidates_csv)
     ds = BopDataset(dataset, split)
+    manifest.verify(csv_path)  # a file written by cosy estimate: refused if changed since
     cands = bop.read_results(csv_path)
     _check_inputs(ds, cands, csv_path, conf["known_cameras"])
     t0 = time.perf_counter()
@@ -498,11 +530,14 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
         "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
         "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
         "time_matching_s": round(t_match, 4),
+        "single_view_groups": int(sum(len(g["im_ids"]) == 1 for g in groups)),
     }
     with atomic.atomic_dir(out, overwrite=overwrite) as tmp:
         _write_outputs(tmp, conf, ds, csv_path, cands, groups, object_id, group_of, summary)
     log(f"match: {summary['groups']} groups, {summary['candidates']} candidates: {kept} kept in {n_obj} objects, "
         f"{summary['discarded']} discarded; {summary['linked_view_pairs']}/{summary['view_pairs']} view pairs linked; "
         f"{summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "
-        f"total {time.perf_counter() - t_start:.2f} s -> {out}")
+        + (f"{summary['single_view_groups']} single-view group(s): candidates passed through; "
+           if summary["single_view_groups"] else "")
+        + f"total {time.perf_counter() - t_start:.2f} s -> {out}")
     return summary

@@ -28,6 +28,14 @@ Output folder (built atomically):
     added unchanged with their score times ``unmatched_score_factor`` (so they rank below),
     unless a refined prediction of the same object label lies within ``unmatched_dedup_mm`` of
     them in that image.
+``manifest.json``
+    sha1 and size of the two files above (:mod:`cosy_cli.io.manifest`), checked by ``cosy evaluate``.
+
+A group of one view (a scene of one image) has nothing to refine: its candidates pass through
+unchanged as its predictions (the camera is the identity, the view being the world frame; the
+dataset's pose with known cameras) and its scene.json entry says ``"single_view": true`` with a
+``note``. The match folder is checked against its ``manifest.json`` first: a file changed or
+truncated since ``cosy match`` wrote it is refused.
 """
 
 from __future__ import annotations
@@ -42,7 +50,7 @@ from .. import __version__
 from ..conf import merge_conf
 from ..errors import CosyError
 from ..geometry.poses import invert
-from ..io import atomic, bop, cache
+from ..io import atomic, bop, cache, manifest
 from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
@@ -99,12 +107,16 @@ def read_match_dir(matches: str | Path) -> tuple[dict, bop.PoseResults]:
     path = matches / "groups.json"
     try:
         doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        manifest.verify(path)  # a truncated groups.json: say so when match's manifest tells
         raise CosyError(f"cannot read ({e})", path=path) from None
     if not isinstance(doc, dict) or (doc.get("format"), doc.get("version")) != MATCH_FORMAT:
         raise CosyError(f"expected format {MATCH_FORMAT[0]!r} version {MATCH_FORMAT[1]}, got "
                         f"{doc.get('format')!r} version {doc.get('version')!r}" if isinstance(doc, dict) else
                         "expected a JSON object", path=path)
+    # every file of the folder as cosy match wrote it (a folder without manifest.json, made by
+    # hand or by an older cosy, is read as it is, through the validating readers)
+    manifest.verify_folder(matches, match_stage.OUTPUT_FILES)
     for k in ("groups", "split", "dataset", "known_cameras"):
         if k not in doc:
             raise CosyError(f"missing key {k!r}", path=path)
@@ -174,11 +186,44 @@ def _nms(T_world_obj: np.ndarray, obj_ids: np.ndarray, n_cands: np.ndarray, scor
     return keep, into
 
 
+SINGLE_VIEW_NOTE = "single view: candidates passed through"
+
+
+def single_view_group(g: dict, cands: bop.PoseResults, T_world_cam: np.ndarray, t0: float) -> dict:
+    """A group of one view: nothing to refine. Each object's best candidate is its prediction,
+    unchanged (T_cam_obj and score of the candidate); the camera is ``T_world_cam`` (the
+    identity: the view is the world frame, or the dataset's pose with known cameras). Same
+    entry as :func:`refine_group`, with ``"single_view": true`` and a ``note``."""
+    s, v = int(g["scene_id"]), int(g["im_ids"][0])
+    c_score = cands.table["score"].to_numpy()
+    objects_out, pred, unused = [], [], [int(c) for c in g["discarded"]]
+    for o in g["objects"]:
+        ids = [int(c) for c in o["cand_ids"]]
+        if not ids:
+            continue
+        best = ids[int(np.argmax(c_score[ids]))]
+        unused += [c for c in ids if c != best]
+        T_cam_obj = cands.T_cam_obj[best]
+        objects_out.append({"object_id": int(o["object_id"]), "obj_id": int(o["obj_id"]), "score": float(c_score[best]),
+                            "n_candidates": 1, "cand_ids": [best], "reprojection_error_px": None,
+                            "T_world_obj": _mat(T_world_cam @ T_cam_obj)})
+        pred.append((s, v, int(o["obj_id"]), float(c_score[best]), T_cam_obj))
+    dt = time.perf_counter() - t0
+    stats = {"iterations": 0, "converged": True, "initial_cost_px2": 0.0, "final_cost_px2": 0.0,
+             "n_candidates": len(objects_out), "n_unused_candidates": len(unused), "time_s": round(dt, 6)}
+    return {
+        "scene_id": s, "group_id": int(g["group_id"]), "gauge_im_id": v,
+        "cameras": [{"im_id": v, "T_world_cam": _mat(T_world_cam)}], "unplaced_im_ids": [], "objects": objects_out,
+        "stats": stats, "single_view": True, "note": SINGLE_VIEW_NOTE,
+        "_pred": pred, "_unused": sorted(set(unused)), "_time": dt,
+    }
+
+
 def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict, conf: dict,
                  known_cameras: bool) -> dict:
     """Refine one group of groups.json. ``geometry``: {obj_id: LabelGeometry}. Returns the
     group's scene.json entry plus private keys: "_pred" (rows of predictions) and "_unused"
-    (cand_ids not used in the scene)."""
+    (cand_ids not used in the scene). A group of one view: :func:`single_view_group`."""
     t0 = time.perf_counter()
     s = int(g["scene_id"])
     im_ids = [int(i) for i in g["im_ids"]]
@@ -187,6 +232,14 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     if missing:
         raise CosyError(f"image {missing[0]} of scene {s} (group {g['group_id']} in groups.json) is not in "
                         "the dataset's scene_camera.json", path=ds.scene_file(s, "scene_camera"))
+    if len(im_ids) == 1:
+        T_world_cam = np.eye(4)
+        if known_cameras:
+            if cams[im_ids[0]].T_cam_world is None:
+                raise CosyError("match ran with --known-cameras but the camera pose (cam_R_w2c, cam_t_w2c) is missing",
+                                path=ds.scene_file(s, "scene_camera"), where=f"image {im_ids[0]}")
+            T_world_cam = invert(cams[im_ids[0]].T_cam_world)
+        return single_view_group(g, cands, T_world_cam, t0)
     if known_cameras:
         no_pose = [i for i in im_ids if cams[i].T_cam_world is None]
         if no_pose:
@@ -346,6 +399,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     bad = [o for o in used if o not in infos]
     if bad:
         raise CosyError(f"object {bad[0]} of {gpath} is not in the dataset's models", path=ds.models_info_path)
+    used = sorted({int(o["obj_id"]) for g in doc["groups"] if len(g["im_ids"]) > 1 for o in g["objects"]})
     geometry = {o: label_geometry(ds, o, conf["n_points"], conf["symmetry_steps"]) for o in used}
 
     groups = doc["groups"]
@@ -405,6 +459,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "predictions": len(preds), "refined_predictions": n_refined, "unmatched_predictions": n_unmatched,
         "median_reprojection_error_px": float(np.median(finals)) if finals else None,
         "not_converged": int(sum(not r["stats"]["converged"] for r in results)),
+        "single_view_groups": int(sum(bool(r.get("single_view")) for r in results)),
         "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
         "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
     }
@@ -421,11 +476,14 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     with atomic.atomic_dir(out, overwrite=overwrite) as tmp:
         (tmp / "scene.json").write_text(json.dumps(out_doc, separators=(",", ":")) + "\n")
         (tmp / "predictions.csv").write_text(bop.format_results(preds))
+        manifest.write_folder_manifest(tmp, "cosy refine", OUTPUT_FILES)  # checked by cosy evaluate
     med = summary["median_reprojection_error_px"]
     log(f"refine: {summary['groups']} groups, {summary['views_placed']}/{summary['views']} views placed, "
         f"{summary['objects']} objects, {summary['predictions']} predictions"
         + (f" ({n_unmatched} unmatched candidates kept)" if conf["keep_unmatched"] else "")
         + (f"; median reprojection error {med:.2f} px" if med is not None else "")
+        + (f"; {summary['single_view_groups']} single-view group(s): candidates passed through"
+           if summary["single_view_groups"] else "")
         + f"; {summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "
         f"total {time.perf_counter() - t_start:.2f} s -> {out}")
     return summary

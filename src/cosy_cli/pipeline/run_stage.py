@@ -33,6 +33,7 @@ from typing import Callable
 from ..conf import merge_conf
 from ..errors import CosyError
 from ..io import atomic
+from ..io import manifest as integrity
 from ..io.dataset import BopDataset
 from . import units
 from .layout import MANIFEST, RUN_FORMAT, scene_dir
@@ -155,9 +156,12 @@ def run_scene(task: dict) -> dict:
             def copy_candidates():
                 from ..io import bop
 
+                integrity.verify(src)
                 res = bop.read_results(src)
                 sel = (res.table["scene_id"] == sid).to_numpy()
-                bop.write_results(cands, bop.PoseResults(res.table[sel].reset_index(drop=True), res.T_cam_obj[sel]))
+                text = bop.format_results(bop.PoseResults(res.table[sel].reset_index(drop=True), res.T_cam_obj[sel]))
+                integrity.write_file_manifest(cands, "cosy run", text.encode("utf-8"))
+                atomic.write_text(cands, text)
 
             unit("estimate", None, {"candidates_file": _digest_of(src)}, ["candidates.csv"], copy_candidates)
     else:
@@ -200,10 +204,13 @@ def run_scene(task: dict) -> dict:
 # ------------------------------------------------------------------------------------------
 # merging the scenes
 # ------------------------------------------------------------------------------------------
-def merge_csv(parts: list[Path], out: Path) -> None:
-    """Concatenate CSV files with the same header (written atomically)."""
+def merge_csv(parts: list[Path], out: Path, sidecar_manifest: bool = True) -> None:
+    """Concatenate CSV files with the same header (written atomically; with ``sidecar_manifest``
+    its manifest ``<out>.manifest.json``, see :mod:`cosy_cli.io.manifest`). Each part is checked
+    against its own manifest first."""
     header, lines = None, []
     for p in parts:
+        integrity.verify(p)
         text = p.read_text().splitlines()
         if not text:
             continue
@@ -213,8 +220,10 @@ def merge_csv(parts: list[Path], out: Path) -> None:
             raise CosyError(f"header differs from {parts[0]}", path=p)
         lines.extend(t for t in text[1:] if t)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic.atomic_path(out) as tmp:
-        Path(tmp).write_text("\n".join([header or ""] + lines) + "\n")
+    text = "\n".join([header or ""] + lines) + "\n"
+    if sidecar_manifest:
+        integrity.write_file_manifest(out, "cosy run", text.encode("utf-8"))
+    atomic.write_text(out, text)
 
 
 def merge_detections(parts: list[Path], out: Path) -> None:
@@ -225,9 +234,28 @@ def merge_detections(parts: list[Path], out: Path) -> None:
     atomic.write_json(out, data, indent=None)
 
 
+def single_view_counts(sdirs: list[Path]) -> dict:
+    """Groups of one view in the scenes' refine outputs (their candidates passed through):
+    {"groups", "groups_total", "scene_ids"}."""
+    n = total = 0
+    scenes = []
+    for d in sdirs:
+        try:
+            doc = json.loads((d / "refine" / "scene.json").read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        k = sum(bool(g.get("single_view")) for g in doc.get("groups", []))
+        n, total = n + k, total + len(doc.get("groups", []))
+        if k:
+            scenes.append(int(d.name))
+    return {"groups": n, "groups_total": total, "scene_ids": scenes}
+
+
 def merge_scene_json(parts: list[Path], out: Path) -> None:
     """One refine ``scene.json`` holding the groups of every scene (settings of the first part;
     each scene's summary under ``scene_summaries``)."""
+    for p in parts:
+        integrity.verify(p)
     docs = [json.loads(p.read_text()) for p in parts]
     merged = {k: v for k, v in docs[0].items() if k not in ("groups", "summary", "matches", "groups_sha1")}
     merged["matches"] = [d.get("matches") for d in docs]
@@ -368,12 +396,19 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     merged = []
     for rel, dst, fn in (("detections.json", out / "detect" / "detections.json", merge_detections),
                          ("candidates.csv", out / "estimate" / "candidates.csv", merge_csv),
-                         ("refine/predictions.csv", out / "refine" / "predictions.csv", merge_csv),
+                         ("refine/predictions.csv", out / "refine" / "predictions.csv",
+                          lambda parts, dst: merge_csv(parts, dst, sidecar_manifest=False)),
                          ("refine/scene.json", out / "refine" / "scene.json", merge_scene_json)):
         parts = [d / rel for d in sdirs]
         if all(p.is_file() for p in parts) and parts:
             fn(parts, dst)
             merged.append(str(dst.relative_to(out)))
+    if {"refine/predictions.csv", "refine/scene.json"} <= set(merged):  # checked by evaluate
+        integrity.write_folder_manifest(out / "refine", "cosy run", ("scene.json", "predictions.csv"))
+    single = single_view_counts(sdirs)
+    if single["groups"]:
+        log(f"run: {single['groups']} single-view group(s) of {single['groups_total']} "
+            f"(scenes {', '.join(map(str, single['scene_ids']))}): candidates passed through as predictions")
 
     evals = {}
     if runs("evaluate", first, last):
@@ -415,6 +450,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
 
     manifest["stages"] = {**manifest["stages"], **stage_times}
     manifest["merged"] = merged
+    manifest["single_view"] = single
     manifest["metrics"] = {name: {k: s.get(k) for k in SUMMARY_METRICS if k in s} for name, s in evals.items()}
     manifest["status"] = "done"
     manifest["time_s"] = round(time.perf_counter() - t_start, 3)
@@ -444,6 +480,10 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
             vals = [m[n].get(k) for n in names]
             if any(v is not None for v in vals):
                 lines.append(f"{k:<32}" + "".join(f"{v:>13.3f}" if v is not None else f"{'-':>13}" for v in vals))
+    sv = manifest.get("single_view") or {}
+    if sv.get("groups"):
+        lines += ["", f"single view: {sv['groups']} of {sv['groups_total']} group(s) had one view "
+                      "(their candidates passed through as predictions)"]
     lines.append("")
     if (out / "refine" / "predictions.csv").is_file():
         lines.append(f"final predictions: {out / 'refine' / 'predictions.csv'}")

@@ -17,7 +17,8 @@ with ``from_gt``) becomes one object candidate: label, the detector's score and 
 else templates; the shipped (or given) refiner if any; ICP when the dataset has depth. The
 summary says which combination ran. Output: a BOP results CSV (scene_id, im_id, obj_id, score,
 R, t mm, time s per image) that ``cosy match`` reads, ``<out>.timing.csv`` (per image: detections
-and seconds per step) and ``<out>.json`` (settings, inputs, what ran, totals).
+and seconds per step), ``<out>.json`` (settings, inputs, what ran, totals) and
+``<out name>.manifest.json`` (the CSV's sha1 and size, checked by ``cosy match``).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ from ..detection.boxes import clip_xyxy
 from ..detection.importers import DET_COLUMNS, detections_from_gt  # noqa: F401 (DET_COLUMNS: re-exported)
 from ..errors import CosyError
 from ..io import bop
-from ..io.atomic import atomic_path, write_json
+from ..io import manifest
+from ..io.atomic import atomic_path, write_json, write_text
 from ..io.cache import file_sha1
 from ..io.cache import reuse_existing_file
 from ..io.dataset import BopDataset
@@ -327,6 +329,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         dets = detections_from_gt(ds, scene_ids, conf["min_visib_fract"])
         source = f"GT boxes of {ds.split_dir}"
     else:
+        manifest.verify(detections)  # refuses a file changed since cosy detect wrote it
         dets = bop.read_detections(detections)
         source = str(detections)
     dets = check_detections(dets, ds, scene_ids, set(db.obj_ids), source, log)
@@ -398,7 +401,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     with atomic_path(timing_path) as tmp:
         timing_df.to_csv(tmp, index=False, float_format="%.6g")
     write_json(doc_path, summary)
-    bop.write_results(out, res)  # last: a complete CSV means the whole stage finished
+    text = bop.format_results(res)
+    manifest.write_file_manifest(out, "cosy estimate", text.encode("utf-8"))  # checked by cosy match
+    write_text(out, text)  # last: a complete CSV means the whole stage finished
     log(f"estimate: {len(res)} candidates from {n_img} images, {summary['time_per_image_s'] * 1e3:.0f} ms per image "
         f"({summary['time_per_detection_s'] * 1e3:.0f} ms per detection) -> {out}")
     if keep_steps:
