@@ -243,19 +243,17 @@ def model_points(path: str | Path, n_points: int, seed: int = 0) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise CosyError("model file not found (BOP models are models/obj_XXXXXX.ply)", path=path)
+    from ..objects.database import check_mesh_arrays, check_ply_data, load_mesh
+
     try:
         if path.suffix.lower() != ".ply":
             raise ValueError("not a PLY")
+        check_ply_data(path)  # CosyError when the file holds less than its header declares
         V, F = read_ply_mesh(path)
     except (ValueError, KeyError, IndexError, UnicodeDecodeError):
-        from ..objects.database import load_mesh
-
         mesh = load_mesh(path)
         V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-    if V is None or len(V) == 0 or not np.all(np.isfinite(V)):
-        raise CosyError("model has no (finite) vertices", path=path)
-    if F is not None and len(F) and (F.min() < 0 or F.max() >= len(V)):
-        raise CosyError("face index out of range", path=path)
+    check_mesh_arrays(V, F, path)  # the checks every stage makes: finite, faces in range, not empty
     X = farthest_point_subset(sample_surface(V, F, 2000, seed), n_points)
     return X[np.arange(n_points) % len(X)]  # fewer points (a small point cloud): cycled, N for every label
 

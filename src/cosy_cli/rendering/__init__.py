@@ -36,7 +36,8 @@ from .platform import select_gl_platform
 select_gl_platform()
 
 from .pyrender_patch import patch_pyrender  # noqa: E402
+from .decimate import MAX_RENDER_FACES, render_copy  # noqa: E402
 from .renderer import DEFAULT_COLOR, RenderOutput, SceneRenderer, projection_matrix  # noqa: E402
 
 __all__ = ["SceneRenderer", "RenderOutput", "projection_matrix", "patch_pyrender",
-           "select_gl_platform", "DEFAULT_COLOR"]
+           "select_gl_platform", "DEFAULT_COLOR", "MAX_RENDER_FACES", "render_copy"]

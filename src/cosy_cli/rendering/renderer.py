@@ -40,6 +40,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .decimate import MAX_RENDER_FACES, render_copy
 from .platform import create_context, select_gl_platform
 from .pyrender_patch import patch_pyrender
 
@@ -144,7 +145,8 @@ def projection_matrix(K: np.ndarray, width: int, height: int, znear: float, zfar
 class _GpuMesh:
     """One object's vertex array (positions, normals, [uv], [colours]) and texture on the GPU."""
 
-    def __init__(self, mesh, smooth: bool, default_color, cull: bool | None = None):
+    def __init__(self, mesh, smooth: bool, default_color, cull: bool | None = None,
+                 max_faces: int | None = MAX_RENDER_FACES):
         import pyrender
         import trimesh
 
@@ -154,6 +156,7 @@ class _GpuMesh:
             raise TypeError(f"expected a trimesh.Trimesh (vertices in mm), got {type(mesh).__name__}")
         if len(mesh.faces) == 0:
             raise ValueError("mesh has no faces")
+        mesh = render_copy(mesh, max_faces)  # big meshes: a decimated copy, cached on disk
         if smooth and mesh.visual.kind == "face":
             smooth = False  # face colours need unmerged vertices
         if cull is None:
@@ -270,6 +273,8 @@ class SceneRenderer:
     interpolated vertex normals (scanned meshes) instead of flat faces (CAD-like parts).
     ``cull_back_faces``: None (default) culls back faces of closed, outward-wound meshes (twice as
     fast on llvmpipe) and draws open ones two-sided; True/False forces it for every mesh.
+    ``max_faces``: meshes with more faces are drawn from a decimated copy cached on disk
+    (:func:`cosy_cli.rendering.decimate.render_copy`; None: always the full mesh).
 
     Not thread-safe; one renderer per thread or process. Worker processes that render with EGL
     must be started with the ``spawn`` method (a forked EGL context is unusable).
@@ -277,7 +282,7 @@ class SceneRenderer:
 
     def __init__(self, meshes: Mapping[int, object], width: int, height: int, *, znear: float = 10.0,
                  zfar: float = 10_000.0, smooth: bool = False, default_color=DEFAULT_COLOR,
-                 cull_back_faces: bool | None = None):
+                 cull_back_faces: bool | None = None, max_faces: int | None = MAX_RENDER_FACES):
         if not (0 < znear < zfar):
             raise ValueError(f"need 0 < znear < zfar (mm), got {znear}, {zfar}")
         self.width, self.height = int(width), int(height)
@@ -285,6 +290,7 @@ class SceneRenderer:
         self.smooth = smooth
         self.default_color = default_color
         self.cull_back_faces = cull_back_faces
+        self.max_faces = max_faces
         self.platform = _PLATFORM
         self._closed = True
         patch_pyrender()  # other pyrender users in this process must not terminate our EGL display
@@ -312,7 +318,8 @@ class SceneRenderer:
         old = self._meshes.pop(int(obj_id), None)
         if old is not None:
             old.delete()
-        self._meshes[int(obj_id)] = _GpuMesh(mesh, self.smooth, self.default_color, self.cull_back_faces)
+        self._meshes[int(obj_id)] = _GpuMesh(mesh, self.smooth, self.default_color, self.cull_back_faces,
+                                             self.max_faces)
 
     def render(self, K, obj_ids: Sequence[int], T_cam_obj, *, colors=None, background=None, light_dir=None,
                light_intensity=None, ambient: float = 0.3, with_rgb: bool = True,

@@ -82,6 +82,7 @@ def main(run_dir: str | Path, out: str | Path | None = None, scene_ids=None, ove
     """
     from ..io import atomic
     from ..io.dataset import BopDataset
+    from ..objects.database import MeshFileError
     from . import figures as F
 
     t0 = time.perf_counter()
@@ -134,6 +135,8 @@ def main(run_dir: str | Path, out: str | Path | None = None, scene_ids=None, ove
                 info: dict = {}
                 try:
                     group_figure(run_dir, s, g, path, renderer=mr, info=info)
+                except MeshFileError:
+                    raise  # a broken model file: every figure showing it would fail
                 except CosyError as e:
                     failed.append(f"scene {s} group {g}: {e}")
                     log(f"viz: no figure for scene {s} group {g}: {e}")
