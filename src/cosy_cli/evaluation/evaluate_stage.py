@@ -225,8 +225,10 @@ def parse_scene_json(path: Path, ds: BopDataset) -> list[dict]:
                 T = np.asarray(T, dtype=np.float64).reshape(4, 4)
             except (TypeError, ValueError):
                 raise CosyError("T_world_cam: expected a 4x4 matrix (mm)", path=path, where=w) from None
-            if not np.all(np.isfinite(T)) or bop.rotation_errors(T[:3, :3]) > bop.ROTATION_TOL:
+            if not np.all(np.isfinite(T)):
                 raise CosyError("T_world_cam: not a finite rigid transform", path=path, where=w)
+            # tolerated like the rotations of the BOP files: nearest rotation within 0.05, else an error
+            T[:3, :3] = bop.repair_rotations(T[:3, :3], lambda _: w, path=path, what="T_world_cam rotation")[0][0]
             placed[c["im_id"]] = T
         extra = g.get("unplaced_im_ids", [])  # cosy refine lists the views it could not place there
         if not isinstance(extra, list) or not all(isinstance(i, int) for i in extra):
