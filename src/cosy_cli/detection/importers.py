@@ -58,6 +58,10 @@ def detections_from_gt(ds: BopDataset, scene_ids: list[int], min_visib_fract: fl
     for sid in scene_ids:
         if not ds.has_gt(sid):
             raise CosyError("--from-gt needs scene_gt.json and scene_gt_info.json", path=ds.scene_dir(sid))
+        if not ds.scene_file(sid, "scene_gt_info").is_file():
+            raise CosyError(f"--from-gt needs the visible boxes of scene_gt_info.json, which this split lacks "
+                            f"(YCB-V's train_real, for one): compute them with `cosy gt-info --dataset "
+                            f"{ds.root} --split {ds.split_name}`", path=ds.scene_file(sid, "scene_gt_info"))
         gt, info = ds.scene_gt(sid), ds.scene_gt_info(sid)
         for im_id in ds.image_ids(sid):
             insts, infos = gt.get(im_id, []), info.get(im_id, [])
