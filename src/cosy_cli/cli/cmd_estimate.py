@@ -34,11 +34,12 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
               help="default (best available: see --coarse/--refiner/--depth-refine), paper (coarse + refiner "
                    "networks, RGB only) or templates-icp (training-free).")
 @click.option("--coarse", default=None,
-              help="network | templates | auto, or a coarse ONNX model (implies network) [auto: the shipped coarse "
-                   "model if any, else templates].")
+              help="network | templates | auto, or a coarse ONNX model (implies network; also a CosyPose coarse "
+                   "run directory or its `cosy export --run` ONNX) [auto: the shipped coarse model if any, else "
+                   "templates].")
 @click.option("--refiner", default=None,
-              help="network | none | auto, or a refiner ONNX model (implies network) [auto: the shipped refiner "
-                   "if any].")
+              help="network | none | auto, or a refiner ONNX model (implies network; also a CosyPose refiner run "
+                   "directory or its `cosy export --run` ONNX) [auto: the shipped refiner if any].")
 @click.option("--depth-refine", type=click.Choice(["icp", "none", "auto"]), default=None,
               help="Point-to-plane ICP of each candidate on the depth image [auto: icp when the split has depth].")
 @click.option("--refiner-iterations", type=click.IntRange(min=0), default=None, help="Refiner iterations [paper: 4].")

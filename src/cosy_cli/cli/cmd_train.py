@@ -89,16 +89,37 @@ def train(kind, dataset, split, out, backbone, crop, input_size, iterations, bat
 
 
 @click.command("export")
-@click.option("--run", required=True, type=click.Path(path_type=Path), help="Run folder of cosy train.")
+@click.option("--run", required=True, type=click.Path(path_type=Path),
+              help="Run folder of cosy train, or a CosyPose run directory as published (config.yaml + "
+                   "checkpoint.pth.tar).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="ONNX file to write; the model card goes next to it (same name, .md).")
 @click.option("--accuracy", default=None, help="Measured accuracy line for the model card [not measured].")
 @user_errors
 def export(run, out, accuracy) -> None:
     """Export a trained run's network (pose network or detector) to ONNX (dynamic batch) and
-    write its model card."""
-    from ..detection import train as det_train
+    write its model card.
 
+    A CosyPose run directory (its published coarse or refiner checkpoints) exports to an ONNX whose
+    input is (B, 6, 240, 320) = [image crop RGB, render RGB] in [0, 1] and whose output is the
+    (B, 9) raw pose update, for `cosy estimate --coarse/--refiner`.
+    """
+    from ..detection import train as det_train
+    from ..singleview import cosypose_compat
+
+    if cosypose_compat.is_cosypose_run(run):
+        if accuracy is not None:
+            raise click.UsageError("--accuracy is for cosy's own runs")
+        cosypose_compat.export_onnx(run, out, log=click.echo)
+        return
+    if Path(run).is_dir() and not (Path(run) / "checkpoint.pt").is_file():
+        from ..errors import CosyError
+
+        ours = [n for n in ("checkpoint.pt", "config.json") if not (Path(run) / n).is_file()]
+        theirs = [n for n in (cosypose_compat.CONFIG_NAME, cosypose_compat.CHECKPOINT_NAME)
+                  if not (Path(run) / n).is_file()]
+        raise CosyError(f"neither a cosy run folder ({' and '.join(ours)} missing; train one with `cosy train`) nor "
+                        f"a CosyPose run directory ({' and '.join(theirs)} missing)", path=run)
     if det_train.run_kind(run) == "detector":
         det_train.export(run, out, accuracy=accuracy, log=click.echo)
         return

@@ -152,7 +152,11 @@ class Estimator:
             self.refiner_net = self._runner(refiner_model, "refiner", providers)
 
     def _runner(self, path, kind, providers):
+        from . import cosypose_compat
         from .onnx import OnnxPoseNet
+
+        if cosypose_compat.is_cosypose_model(path):  # CosyPose's published networks (run dir or its ONNX)
+            return cosypose_compat.make_runner(path, kind, self.db, self.renderer, providers, self.conf["batch_size"])
         from .render_compare import RenderAndCompare
 
         net = OnnxPoseNet(path, providers=providers)
@@ -231,9 +235,9 @@ def decide(conf: dict, *, coarse_model: Path | None, refiner_model: Path | None,
     """Replace the "auto" entries of ``conf`` by what is available (a copy)."""
     c = dict(conf)
     if c["coarse"] == "auto":
-        c["coarse"] = "network" if coarse_model is not None and Path(coarse_model).is_file() else "templates"
+        c["coarse"] = "network" if coarse_model is not None and Path(coarse_model).exists() else "templates"
     if c["refiner"] == "auto":
-        c["refiner"] = "network" if refiner_model is not None and Path(refiner_model).is_file() else "none"
+        c["refiner"] = "network" if refiner_model is not None and Path(refiner_model).exists() else "none"
     if c["depth_refine"] == "auto":
         c["depth_refine"] = "icp" if has_depth else "none"
     return c
@@ -267,6 +271,23 @@ def ensure_templates(models_dir: str | Path, templates_dir: str | Path, log=prin
     return tpl.main(old["conf"] if old and old.get("conf") else None, models_dir, tdir, log=log)
 
 
+def _given_model(given, shipped_path: Path, kind: str, needed: bool) -> Path | None:
+    """:func:`cosy_cli.shipped.model_path`, also accepting a CosyPose run directory."""
+    from .cosypose_compat import is_cosypose_run, read_run
+
+    if given is not None and Path(given).is_dir():
+        if not is_cosypose_run(given):
+            read_run(given)  # raises, naming what the directory lacks
+        return Path(given)
+    return _model_path(given, shipped_path, kind, needed)
+
+
+def model_sha1(path) -> str:
+    from .cosypose_compat import model_sha1 as sha1
+
+    return sha1(path)
+
+
 def output_paths(out: Path) -> tuple[Path, Path]:
     return out.with_suffix(".timing.csv"), out.with_suffix(".json")
 
@@ -277,8 +298,8 @@ def _inputs_doc(ds: BopDataset, split: str, scene_ids, detections, models_dir: P
         "detections": "gt" if detections is None else {"path": str(Path(detections).resolve()),
                                                        "sha1": file_sha1(detections)},
         "models": {"dir": str(models_dir.resolve()), "models_info_sha1": file_sha1(models_dir / "models_info.json")},
-        "coarse_model": None if coarse is None else {"path": str(coarse), "sha1": file_sha1(coarse)},
-        "refiner_model": None if refiner is None else {"path": str(refiner), "sha1": file_sha1(refiner)},
+        "coarse_model": None if coarse is None else {"path": str(coarse), "sha1": model_sha1(coarse)},
+        "refiner_model": None if refiner is None else {"path": str(refiner), "sha1": model_sha1(refiner)},
     }
 
 
@@ -311,8 +332,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     has_depth = first_scene is not None and bool(ds.image_ids(first_scene)) and \
         ds.depth_path(first_scene, ds.image_ids(first_scene)[0]) is not None
     wants = {k: conf[k] for k in ("coarse", "refiner")}
-    coarse_model = _model_path(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
-    refiner_model = _model_path(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
+    coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
+    refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
     if run_conf["depth_refine"] == "icp" and not has_depth:
         raise CosyError("--depth-refine icp needs depth images, and this split has none "
