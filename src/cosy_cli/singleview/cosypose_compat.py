@@ -276,15 +276,10 @@ def load_network(run: CosyPoseRun | str | Path) -> CosyPoseNet:
     return net.eval()
 
 
-class TorchCosyPoseNet:
-    """A run directory run with torch (no export): ``net(x)`` (B, 6, 240, 320) -> (B, 9) numpy."""
+class _CardNet:
+    """What both runners say about their network (from its model card)."""
 
-    def __init__(self, run: CosyPoseRun | str | Path, device: str = "cpu"):
-        self.run = run if isinstance(run, CosyPoseRun) else read_run(run)
-        self.card = self.run.card()
-        self.device = device
-        self.module = load_network(self.run).to(device)
-        self.path = self.run.run_dir
+    card: dict
 
     @property
     def kind(self) -> str:
@@ -293,6 +288,17 @@ class TorchCosyPoseNet:
     @property
     def init_method(self) -> str:
         return self.card["init_method"]
+
+
+class TorchCosyPoseNet(_CardNet):
+    """A run directory run with torch (no export): ``net(x)`` (B, 6, 240, 320) -> (B, 9) numpy."""
+
+    def __init__(self, run: CosyPoseRun | str | Path, device: str = "cpu"):
+        self.run = run if isinstance(run, CosyPoseRun) else read_run(run)
+        self.card = self.run.card()
+        self.device = device
+        self.module = load_network(self.run).to(device)
+        self.path = self.run.run_dir
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
@@ -352,37 +358,15 @@ def model_card(run: CosyPoseRun, onnx_path: Path) -> str:
     ])
 
 
-class OnnxCosyPoseNet:
+class OnnxCosyPoseNet(_CardNet):
     """An ONNX file written by :func:`export_onnx`, run by onnxruntime: ``net(x)`` -> (B, 9)."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int | None = None):
-        import onnxruntime as ort
+        from .onnx import open_session
 
-        path = Path(path)
-        if not path.is_file():
-            raise CosyError("ONNX model not found", path=path)
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = int(threads)
-        try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts,
-                                                providers=providers or ["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own types
-            raise CosyError(f"not a readable ONNX model: {e}", path=path) from None
-        meta = self.session.get_modelmeta().custom_metadata_map
-        if METADATA_KEY not in meta:
-            raise CosyError(f"ONNX model has no '{METADATA_KEY}' metadata: not a CosyPose network exported by "
-                            "`cosy export --run`", path=path)
-        self.card = json.loads(meta[METADATA_KEY])
-        self.path = path
-
-    @property
-    def kind(self) -> str:
-        return self.card["kind"]
-
-    @property
-    def init_method(self) -> str:
-        return self.card["init_method"]
+        self.session, self.card = open_session(path, METADATA_KEY, providers, threads,
+                                               not_ours="not a CosyPose network exported by `cosy export --run`")
+        self.path = Path(path)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float32)

@@ -63,29 +63,38 @@ def export_onnx(model: PoseNet, path: str | Path, crop_size: tuple[int, int] | N
     return path
 
 
+def open_session(path: str | Path, metadata_key: str, providers: list[str] | None = None,
+                 threads: int | None = None, *, missing: str = "", not_ours: str = "not exported by cosy"):
+    """An onnxruntime session over ``path`` and the JSON stored under ``metadata_key`` in its
+    metadata (what the network is). User errors (missing file, unreadable model, no such
+    metadata) raise CosyError naming the file; ``missing`` / ``not_ours`` say what to do."""
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise CosyError(f"ONNX model not found{missing}", path=path)
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = int(threads)
+    try:
+        session = ort.InferenceSession(str(path), sess_options=opts, providers=providers or ["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types
+        raise CosyError(f"not a readable ONNX model: {e}", path=path) from None
+    meta = session.get_modelmeta().custom_metadata_map
+    if metadata_key not in meta:
+        raise CosyError(f"ONNX model has no '{metadata_key}' metadata: {not_ours}", path=path)
+    return session, json.loads(meta[metadata_key])
+
+
 class OnnxPoseNet:
     """An exported PoseNet run by onnxruntime: ``net(x)`` with x (B, C, H, W) float32 in [0, 1]
     returns (B, 9) float32, the same as ``PoseNet.forward``. ``config`` is the PoseNetConfig."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int | None = None):
-        import onnxruntime as ort
-
-        path = Path(path)
-        if not path.is_file():
-            raise CosyError("ONNX model not found (export one with `cosy export`)", path=path)
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = int(threads)
-        try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts,
-                                                providers=providers or ["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise CosyError(f"not a readable ONNX model: {e}", path=path) from None
-        meta = self.session.get_modelmeta().custom_metadata_map
-        if METADATA_KEY not in meta:
-            raise CosyError(f"ONNX model has no '{METADATA_KEY}' metadata: not exported by cosy", path=path)
-        self.config = PoseNetConfig.from_dict(json.loads(meta[METADATA_KEY]))
-        self.path = path
+        self.session, card = open_session(path, METADATA_KEY, providers, threads,
+                                          missing=" (export one with `cosy export`)")
+        self.config = PoseNetConfig.from_dict(card)
+        self.path = Path(path)
 
     @property
     def kind(self) -> str:
