@@ -286,9 +286,11 @@ def scene_is_done(ds: BopDataset, scene_id: int, gt: Mapping[int, list], masks: 
 def _image_size(ds: BopDataset, scene_id: int, im_id: int) -> tuple[int, int]:
     """(width, height) of an image: from its RGB/gray file, else its depth file, else camera*.json."""
     try:
-        return images.image_size(ds.rgb_path(scene_id, im_id))
-    except CosyError:
+        ds.rgb_path(scene_id, im_id)
+    except CosyError:  # no RGB/gray image: the depth's size, else the camera file's
         pass
+    else:
+        return ds.image_size(scene_id, im_id)  # checked against the camera file and cam_K
     p = ds.depth_path(scene_id, im_id)
     if p is not None:
         return images.image_size(p)

@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import CosyError, DatasetProblems
-from ..io import bop, images
+from ..io import bop
 from ..io.atomic import write_json
 from ..io.dataset import BopDataset
 from .boxes import clip_xyxy, xywh_to_xyxy
@@ -297,7 +297,7 @@ def image_sizes(ds: BopDataset, scene_ids) -> dict[int, tuple[int, int]]:
     for sid in scene_ids:
         ims = ds.image_ids(sid)
         if ims:
-            out[int(sid)] = images.image_size(ds.rgb_path(sid, ims[0]))
+            out[int(sid)] = ds.image_size(sid, ims[0])  # checked against the camera file / cam_K
     return out
 
 

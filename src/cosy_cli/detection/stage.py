@@ -181,6 +181,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     if reuse_existing_file(out, doc_path, "detect", overwrite, conf, inputs, log=log):
         return None
 
+    if source != "gt":  # the detector reads the images; imported boxes are checked against their size
+        ds.check_image_files(scene_ids)  # sizes vs camera file/cam_K, from the headers
     times: list[float] = []
     if source == "gt":
         d = importers.detections_from_gt(ds, scene_ids, conf["min_visib_fract"])

@@ -45,7 +45,7 @@ import pandas as pd
 from .. import __version__
 from ..conf import merge_conf
 from ..errors import CosyError
-from ..io import atomic, bop, cache, images, manifest
+from ..io import atomic, bop, cache, manifest
 from ..io.dataset import BopDataset
 from . import pose_error, protocols
 
@@ -248,7 +248,7 @@ def image_widths(ds: BopDataset, scene_ids) -> dict[int, float]:
             out[int(s)] = float(cam.width)
         else:
             im = ds.image_ids(int(s))[0]
-            out[int(s)] = float(images.image_size(ds.rgb_path(int(s), im))[0])
+            out[int(s)] = float(ds.image_size(int(s), im)[0])  # checked against cam_K
     return out
 
 

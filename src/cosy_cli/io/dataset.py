@@ -10,6 +10,26 @@ Classic::
 BOP-H3 (HOT3D, HOPEv2, HANDAL in BOP 2024) adds per-sensor files: ``scene_camera_<sensor>.json``,
 ``scene_gt_<sensor>.json``, ``scene_gt_info_<sensor>.json`` and image folders named by sensor
 (``rgb``, ``gray1``, ``gray2``...). Pass ``sensor`` to pick one; by default it is detected.
+
+Images read through :class:`BopDataset` (``read_rgb``, ``read_depth``, ``read_mask``,
+``image_size``) are checked against what the dataset says about them, so that no stage computes
+poses with intrinsics that do not belong to an image (``check_images=False`` turns this off):
+
+* an RGB/gray image has the size of the camera file (``camera.json``; classic layout, when it
+  gives a size), else the size of most images of its scene; and its ``cam_K`` puts the principal
+  point inside it (within :data:`PP_MARGIN`). A camera file that describes another split is
+  tolerated when every image of the scene has the same other size and cam_K's principal point
+  lies near their centre (T-LESS ``train_primesense`` is 400x400, its camera file 720x540);
+* a depth image has the size of its RGB/gray image; a mask too;
+* the first depth image read per scene with GT is compared with the GT poses (the model's
+  bounding box projected, no rendering): when most objects sit more than
+  :data:`DEPTH_SCALE_RTOL` of their distance off the measured depth, one warning
+  (:func:`cosy_cli.errors.warn`) says so (wrong ``depth_scale``?). It stays a warning: depth
+  sensors have offsets and holes.
+
+A mismatch is a :class:`~cosy_cli.errors.CosyError` naming the file and both sizes, e.g.
+``.../rgb/000003.png: 320x240 image, but camera.json says 640x480 (and cam_K's principal point
+(325.3, 242) lies outside it)``.
 """
 
 from __future__ import annotations
@@ -20,10 +40,91 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CosyError
+from ..errors import CosyError, warn
 from . import bop, images
 
 TARGET_FILES = ("test_targets_bop19.json", "test_targets_bop24.json")
+PP_MARGIN = 0.1  # cam_K's principal point may lie this fraction of the image size outside it (crops)
+PP_CENTRAL = 0.25  # "near the centre": within this fraction of the size from the image centre
+DEPTH_SCALE_RTOL = 0.1  # depth vs GT: tolerated offset, fraction of the object's distance (beyond its box)
+MIN_DEPTH_PIXELS = 5  # fewer valid depth pixels around an object's centre: not measured
+
+
+def pp_outside(K: np.ndarray, wh, margin: float = 0.0) -> bool:
+    """Whether cam_K's principal point (pixels) lies outside the ``wh`` = (width, height) image,
+    more than ``margin`` x its size away from its borders (0: strictly inside is required)."""
+    W, H = float(wh[0]), float(wh[1])
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if margin > 0:
+        return not (-margin * W <= cx <= (1 + margin) * W and -margin * H <= cy <= (1 + margin) * H)
+    return not (0 < cx < W and 0 < cy < H)
+
+
+def pp_central(K: np.ndarray, wh, fraction: float = PP_CENTRAL) -> bool:
+    """Whether cam_K's principal point lies within ``fraction`` of the size from the image centre."""
+    W, H = float(wh[0]), float(wh[1])
+    return abs(float(K[0, 2]) - 0.5 * W) <= fraction * W and abs(float(K[1, 2]) - 0.5 * H) <= fraction * H
+
+
+def _pp_text(K: np.ndarray) -> str:
+    return f"({float(K[0, 2]):.6g}, {float(K[1, 2]):.6g})"
+
+
+def image_size_problem(wh, K: np.ndarray | None, *, camera: tuple | None = None, scene: tuple | None = None,
+                       scene_uniform: bool = False, what: str = "image") -> str | None:
+    """What is wrong with an image of ``wh`` = (width, height) px, or None.
+
+    ``K``: its cam_K (None: unknown). ``camera``: ((w, h), name) of the dataset camera file (None:
+    no size there). ``scene``: ((w, h), text) the size most images of the scene have, e.g.
+    (``(640, 480)``, "the other images of scene 3"), or None. ``scene_uniform``: every image of the
+    scene has size ``wh`` (then a camera file of another size describes another split, and is
+    overruled when cam_K's principal point lies near the image centre).
+    Rules: the camera file's size, else the scene's; cam_K's principal point inside the image
+    (within :data:`PP_MARGIN`)."""
+    wh = (int(wh[0]), int(wh[1]))
+    outside = K is not None and pp_outside(K, wh)
+    also = f" (and cam_K's principal point {_pp_text(K)} lies outside it)" if outside else ""
+    if camera is not None and wh != tuple(camera[0]):
+        if not (scene_uniform and K is not None and pp_central(K, wh)):
+            return f"{images.fmt_size(wh)} {what}, but {camera[1]} says {images.fmt_size(camera[0])}{also}"
+    elif camera is None and scene is not None and wh != tuple(scene[0]):
+        return f"{images.fmt_size(wh)} {what}, but {scene[1]} are {images.fmt_size(scene[0])}{also}"
+    if K is not None and pp_outside(K, wh, PP_MARGIN):
+        return (f"{images.fmt_size(wh)} {what}, but its cam_K puts the principal point at {_pp_text(K)}, "
+                f"outside it (more than {PP_MARGIN:.0%} of its size past its borders)")
+    return None
+
+
+def depth_vs_gt(depth_mm: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, corners: np.ndarray,
+                window: float = 0.15) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Measured depth at each GT object against its GT distance, without rendering.
+
+    ``depth_mm`` (H, W) mm (0: no measurement); ``K`` (3, 3); ``T_cam_obj`` (N, 4, 4) mm;
+    ``corners`` (N, 8, 3) mm, each model's bounding box. For each object, the median valid depth
+    in a window around its projected centre (``window`` x its projected box, at least 5x5 px).
+    Returns (measured (N,), z_min (N,), z_max (N,)) mm: measured is NaN where the object is not in
+    front of the camera, its centre is outside the image or fewer than :data:`MIN_DEPTH_PIXELS`
+    pixels there have depth; z_min/z_max: the depth range of its box."""
+    H, W = depth_mm.shape
+    T = np.asarray(T_cam_obj, np.float64).reshape(-1, 4, 4)
+    pts = np.einsum("nij,nkj->nki", T[:, :3, :3], np.asarray(corners, np.float64)) + T[:, None, :3, 3]  # (N, 8, 3)
+    z = pts[..., 2]
+    z_min, z_max = z.min(1), z.max(1)
+    measured = np.full(len(T), np.nan)
+    for n in np.flatnonzero(z_min > 0):  # a few objects per image
+        uv = pts[n, :, :2] / z[n, :, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        c = T[n, :3, 3]
+        cu, cv = K[0, 0] * c[0] / c[2] + K[0, 2], K[1, 1] * c[1] / c[2] + K[1, 2]
+        hw = np.maximum(window * 0.5 * (uv.max(0) - uv.min(0)), 2.0)
+        u0, u1 = int(np.floor(max(cu - hw[0], 0))), int(np.ceil(min(cu + hw[0], W)))
+        v0, v1 = int(np.floor(max(cv - hw[1], 0))), int(np.ceil(min(cv + hw[1], H)))
+        if not (0 <= cu < W and 0 <= cv < H) or u1 <= u0 or v1 <= v0:
+            continue
+        vals = depth_mm[v0:v1, u0:u1]
+        vals = vals[vals > 0]
+        if vals.size >= MIN_DEPTH_PIXELS:
+            measured[n] = float(np.median(vals))
+    return measured, z_min, z_max
 
 
 @dataclass
@@ -34,6 +135,7 @@ class BopDataset:
     sensor: str | None = None
     models_subdir: str = "models"
     camera_file: str | Path | None = None  # the dataset camera file, relative to root (or absolute); see camera_path
+    check_images: bool = True  # check what read_rgb/read_depth/read_mask read against the dataset (module doc)
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -198,12 +300,180 @@ class BopDataset:
         folder = d / f"{base}_{s}" if s and (d / f"{base}_{s}").is_dir() else d / base
         return folder / f"{int(im_id):06d}_{int(gt_index):06d}.png"
 
+    # ---- checked image reads ---------------------------------------------------------------
+    def camera_size(self) -> tuple[tuple[int, int], str] | None:
+        """((width, height), file name) of the dataset camera file when it states a size (None:
+        no camera file, no width/height in it, or unreadable: ``cosy validate`` reports that)."""
+        if "camera_size" not in self._cache:
+            val = None
+            p = self.camera_path
+            if p is not None:
+                try:
+                    d = bop.load_json(p)
+                except CosyError:
+                    d = None
+                w, h = (d.get("width"), d.get("height")) if isinstance(d, dict) else (None, None)
+                if all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 and float(v).is_integer()
+                       for v in (w, h)):
+                    val = ((int(w), int(h)), p.name)
+            self._cache["camera_size"] = val
+        return self._cache["camera_size"]
+
+    def scene_image_sizes(self, scene_id: int) -> dict[int, tuple[int, int]]:
+        """{im_id: (width, height)} of the scene's RGB/gray images, from their file headers (cached;
+        images that are missing or unreadable are left out)."""
+        key = ("sizes", int(scene_id))
+        if key not in self._cache:
+            folder = self.image_dir(scene_id)
+            out = {}
+            for im in self.image_ids(scene_id):
+                p = self._find_image(folder, im)
+                if p is not None:
+                    try:
+                        out[im] = images.image_size(p)
+                    except CosyError:
+                        pass
+            self._cache[key] = out
+        return self._cache[key]
+
+    def _K(self, scene_id: int, im_id: int) -> np.ndarray | None:
+        cam = self.scene_camera(scene_id).get(int(im_id))
+        return None if cam is None else cam.K
+
+    def check_image_size(self, scene_id: int, im_id: int, wh, path: Path, what: str = "image") -> None:
+        """Refuse an image of ``wh`` = (width, height) px at ``path`` that disagrees with the camera
+        file or its cam_K (rules: :func:`image_size_problem`): a CosyError naming the file and both sizes."""
+        wh = (int(wh[0]), int(wh[1]))
+        K = self._K(scene_id, im_id)
+        camera = self.camera_size() if self._sensor_for(scene_id) is None else None  # BOP-H3: per-sensor sizes
+        scene, uniform = None, False
+        if camera is None or wh != tuple(camera[0]):
+            try:
+                sizes = self.scene_image_sizes(scene_id)
+            except CosyError:  # no image folder (a depth-only split): cam_K decides
+                sizes = {}
+            if sizes:
+                from collections import Counter
+
+                common = Counter(sizes.values()).most_common(1)[0][0]
+                scene = (common, f"the other images of scene {int(scene_id)}")
+                uniform = all(tuple(v) == wh for v in sizes.values())
+        msg = image_size_problem(wh, K, camera=camera, scene=scene, scene_uniform=uniform, what=what)
+        if msg:
+            raise CosyError(msg, path=path)
+
+    def image_size(self, scene_id: int, im_id: int) -> tuple[int, int]:
+        """(width, height) px of the RGB/gray image, from its header, checked (:meth:`check_image_size`)."""
+        key = ("size", int(scene_id), int(im_id))
+        if key not in self._cache:
+            p = self.rgb_path(scene_id, im_id)
+            wh = images.image_size(p)
+            if self.check_images:
+                self.check_image_size(scene_id, im_id, wh, p)
+            self._cache[key] = wh
+        return self._cache[key]
+
+    def check_image_files(self, scene_ids=None, *, depth: bool = False) -> None:
+        """Check, from the file headers (fast: no decoding), every RGB/gray image of the scenes
+        (and their depth images with ``depth``) as the readers do: stages call it before their
+        slow work so that a wrong image is refused at once (a CosyError naming the file)."""
+        if not self.check_images:
+            return
+        for sid in self.select_scenes(scene_ids):
+            for im in self.image_ids(sid):
+                self.image_size(sid, im)
+                p = self.depth_path(sid, im) if depth else None
+                if p is not None:
+                    self._check_against_image(sid, im, images.image_size(p), p, "depth image")
+
     def read_rgb(self, scene_id: int, im_id: int) -> np.ndarray:
-        return images.read_rgb(self.rgb_path(scene_id, im_id))
+        """(H, W, 3) uint8, checked against the camera file and cam_K (module doc)."""
+        p = self.rgb_path(scene_id, im_id)
+        img = images.read_rgb(p)
+        if self.check_images:
+            key = ("size", int(scene_id), int(im_id))
+            wh = (img.shape[1], img.shape[0])
+            if self._cache.get(key) != wh:
+                self.check_image_size(scene_id, im_id, wh, p)
+                self._cache[key] = wh
+        return img
+
+    def _check_against_image(self, scene_id: int, im_id: int, wh, path: Path, what: str) -> None:
+        """A depth image or mask of ``wh`` must have its RGB/gray image's size (or, without one, the camera's)."""
+        try:
+            ref_path = self.rgb_path(scene_id, im_id)
+        except CosyError:
+            ref_path = None
+        if ref_path is None:
+            self.check_image_size(scene_id, im_id, wh, path, what=what)
+            return
+        ref = self.image_size(scene_id, im_id)
+        if tuple(wh) != tuple(ref):
+            raise CosyError(f"{images.fmt_size(wh)} {what}, but its image {ref_path.parent.name}/{ref_path.name} "
+                            f"is {images.fmt_size(ref)}", path=path)
 
     def read_depth(self, scene_id: int, im_id: int) -> np.ndarray | None:
-        """Depth in mm, or None when the dataset has no depth for this image."""
+        """Depth in mm, or None when the dataset has no depth for this image. Checked: its size is
+        its image's; the first depth read per scene with GT is compared with the GT poses (a
+        warning when most objects sit far from their measured depth: wrong depth_scale?)."""
         p = self.depth_path(scene_id, im_id)
         if p is None:
             return None
-        return images.read_depth(p, self.scene_camera(scene_id)[im_id].depth_scale)
+        d = images.read_depth(p, self.scene_camera(scene_id)[im_id].depth_scale)
+        if self.check_images:
+            self._check_against_image(scene_id, im_id, (d.shape[1], d.shape[0]), p, "depth image")
+            self._check_depth_scale(scene_id, im_id, d, p)
+        return d
+
+    def read_mask(self, scene_id: int, im_id: int, gt_index: int, visib: bool = False) -> np.ndarray:
+        """(H, W) bool mask of a GT instance, checked to have its image's size."""
+        p = self.mask_path(scene_id, im_id, gt_index, visib=visib)
+        m = images.read_mask(p)
+        if self.check_images:
+            self._check_against_image(scene_id, im_id, (m.shape[1], m.shape[0]), p, "mask")
+        return m
+
+    def _check_depth_scale(self, scene_id: int, im_id: int, depth_mm: np.ndarray, path: Path) -> None:
+        """Once per scene (the first depth image whose GT objects can be measured), and until one
+        warning was given: warn when most GT objects sit off their measured depth."""
+        done = self._cache.setdefault("depth_scale_checked", set())
+        if self._cache.get("depth_scale_warned") or int(scene_id) in done:
+            return
+        try:
+            if not self.has_gt(scene_id):
+                done.add(int(scene_id))
+                return
+            gts = self.scene_gt(scene_id).get(int(im_id), [])
+            infos = self.models_info()
+            visib = None
+            if self.scene_file(scene_id, "scene_gt_info").is_file():
+                visib = [g.visib_fract for g in self.scene_gt_info(scene_id).get(int(im_id), [])]
+        except CosyError:  # unreadable GT or models_info: the stage reports it if it needs them
+            done.add(int(scene_id))
+            return
+        keep = [k for k, g in enumerate(gts) if g.obj_id in infos
+                and (visib is None or len(visib) != len(gts) or visib[k] >= 0.5)]
+        if not keep:
+            return
+        T = np.stack([gts[k].T_cam_obj for k in keep])
+        unit = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], np.float64)
+        corners = np.stack([infos[gts[k].obj_id].min_xyz + unit * infos[gts[k].obj_id].size_xyz for k in keep])
+        K = self._K(scene_id, im_id)
+        if K is None:
+            return
+        measured, z_min, z_max = depth_vs_gt(depth_mm, K, T, corners)
+        ok = np.isfinite(measured)
+        if not ok.any():
+            return
+        done.add(int(scene_id))
+        measured, z_min, z_max, zc = measured[ok], z_min[ok], z_max[ok], T[ok, 2, 3]
+        off = (measured < z_min - DEPTH_SCALE_RTOL * zc) | (measured > z_max + DEPTH_SCALE_RTOL * zc)
+        if 2 * int(off.sum()) > len(off):
+            self._cache["depth_scale_warned"] = True
+            ratio = float(np.median(measured / zc))
+            i = int(np.flatnonzero(off)[0])
+            scale = self.scene_camera(scene_id)[int(im_id)].depth_scale
+            warn(f"the measured depth at the GT objects is {ratio:.3g} times their GT distance ({int(off.sum())} of "
+                 f"{len(off)} object(s) more than {DEPTH_SCALE_RTOL:.0%} off, e.g. {measured[i]:.0f} mm measured, "
+                 f"{zc[i]:.0f} mm from the GT pose): wrong depth_scale ({scale:g} in "
+                 f"{self.scene_file(scene_id, 'scene_camera').name}) or wrong GT?", path=path)

@@ -45,15 +45,30 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) read from the file header when possible (png), else by decoding."""
+    """(width, height) read from the file header when possible (png by hand, jpg/tif by PIL), else by decoding."""
     path = Path(path)
+    if not path.is_file():
+        raise CosyError("image not found", path=path)
     if path.suffix.lower() == ".png":
         with open(path, "rb") as f:
             head = f.read(24)
         if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n":
             return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    else:
+        try:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                return int(im.size[0]), int(im.size[1])
+        except Exception:  # PIL raises several types on bad or unknown files: decode instead
+            pass
     img = _imread(path, cv2.IMREAD_UNCHANGED)
     return img.shape[1], img.shape[0]
+
+
+def fmt_size(wh) -> str:
+    """``640x480`` for (width, height)."""
+    return f"{int(wh[0])}x{int(wh[1])}"
 
 
 def _imwrite(path: Path, img: np.ndarray, params: list[int] | None = None) -> None:

@@ -338,6 +338,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     if run_conf["depth_refine"] == "icp" and not has_depth:
         raise CosyError("--depth-refine icp needs depth images, and this split has none "
                         "(use --depth-refine none)", path=ds.split_dir)
+    ds.check_image_files(scene_ids, depth=run_conf["depth_refine"] == "icp")  # sizes vs camera/cam_K, from headers
     used_coarse = coarse_model if run_conf["coarse"] == "network" else None
     used_refiner = refiner_model if run_conf["refiner"] == "network" else None
     inputs = _inputs_doc(ds, split, scene_ids, detections, models_dir, used_coarse, used_refiner)

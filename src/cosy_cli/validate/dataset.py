@@ -15,11 +15,16 @@ split without scene_gt_info.json). What is checked:
 * numbers: every reader error of :mod:`cosy_cli.io` (JSON syntax, shapes, non-finite values),
   rotations (``cam_R_m2c``, ``cam_R_w2c``, discrete symmetries: within the repair tolerance a
   warning per file, beyond it a problem per row), sane intrinsics;
-* images: sizes (read from the file headers) agree with camera.json, or within a scene when
-  there is none; a sample of images (all with ``full``) is decoded to catch corrupt files;
+* images: sizes (read from the file headers) agree with camera.json (classic layout), or within a
+  scene when there is none or when every image of the scene has one other size with cam_K's
+  principal point near its centre (a camera file of another split: a note); depth images and
+  masks have the same size; a sample of images (all with ``full``) is decoded to catch corrupt
+  files. The stages' readers apply the same rules (:mod:`cosy_cli.io.dataset`);
 * ground truth: scene_gt and scene_gt_info agree on image ids and instance counts, every obj_id
   is a model, every object lies in front of its camera, and (on decoded images with depth and
-  visible masks) the measured depth of an object is not grossly off its GT depth;
+  visible masks) the measured depth of an object is not grossly off its GT depth; without
+  visible masks, the stages' cheaper check (:func:`cosy_cli.io.dataset.depth_vs_gt`: most GT
+  objects more than 10 % off the depth at their centre) gives one warning for the split;
 * models: the diameter and bounding box of models_info.json agree with the mesh (1 %), every
   declared symmetry maps the surface onto itself (:func:`check_symmetries`; a residual above the
   tolerance but within 5 % of the diameter is a warning with the measured figure, like the
@@ -43,7 +48,7 @@ import numpy as np
 
 from ..errors import CosyError, CosyWarning, warn
 from ..io import bop, images
-from ..io.dataset import BopDataset
+from ..io.dataset import DEPTH_SCALE_RTOL, BopDataset, depth_vs_gt, pp_central, pp_outside
 from ..objects.database import ObjectModel, diameter_of
 from ..objects.symmetries import continuous_symmetry_transforms
 
@@ -330,6 +335,9 @@ class _Validator:
         self.scene_images: dict[int, set[int]] = {}
         self.gt_counts: dict[int, Counter] = {}  # scene -> Counter[(im_id, obj_id)]
         self.no_gt_info: list[int] = []  # scenes with scene_gt.json but no scene_gt_info.json
+        self.other_split_scenes: list[tuple[int, tuple[int, int]]] = []  # images uniform, not the camera's size
+        self.depth_scale_done: set[int] = set()  # scenes whose depth was compared with the GT boxes
+        self.depth_scale_off: list[tuple] = []  # (depth path, im, ratio, n off, n, depth_scale)
 
     # ---- camera.json ---------------------------------------------------------------------
     def check_camera(self) -> None:
@@ -468,6 +476,19 @@ class _Validator:
         self.rep.n_scenes = len(self.scene_ids)
         for scene_id in tqdm(self.scene_ids, desc="scenes", unit="scene", disable=None if self.progress else True):
             self.check_scene(scene_id)
+        if self.depth_scale_off:
+            path, im, ratio, n_off, n, scale = self.depth_scale_off[0]
+            more = len(self.depth_scale_off) - 1
+            warn(f"image {im}: the measured depth at the GT objects is {ratio:.3g} times their GT distance ({n_off} of "
+                 f"{n} object(s) more than {DEPTH_SCALE_RTOL:.0%} off{f'; the same in {more} other scene(s)' if more else ''}"
+                 f"): wrong depth_scale ({scale:g})?", path=path)
+        if self.other_split_scenes:
+            sids = [s for s, _ in self.other_split_scenes]
+            sizes = sorted(set(_fmt_size(wh) for _, wh in self.other_split_scenes))
+            cam = self.camera
+            self.rep.notes.append(f"scene(s) {_ids(sids)}: every image is {' or '.join(sizes)} (cam_K's principal point "
+                                  f"near the centre), {self.camera_name} says {cam.width}x{cam.height}: it describes "
+                                  "another split? Images checked against the others of their scene")
         if self.no_gt_info:
             n, first = len(self.no_gt_info), self.no_gt_info[0]
             warn(f"no scene_gt_info.json in {n} of {self.rep.n_scenes_with_gt} scene(s) with scene_gt.json "
@@ -557,9 +578,16 @@ class _Validator:
                 except CosyError as e:
                     p.error(e, group=img_dir, check="unreadable image")
 
-        # expected size: the camera file's, else the most common one of the scene
-        if self.camera is not None:
+        # expected size: the camera file's (classic layout; BOP-H3 sensors differ), else the most
+        # common one of the scene; the rules of the stages' readers (cosy_cli.io.dataset)
+        if self.camera is not None and sensor is None:
             expected, source = (self.camera.width, self.camera.height), self.camera_name
+            other = set(sizes.values())
+            if len(other) == 1 and len(sizes) == len(ids) and tuple(next(iter(other))) != tuple(expected):
+                wh = next(iter(other))
+                if all(pp_central(cams[im].K, wh) for im in ids):  # the camera file describes another split
+                    self.other_split_scenes.append((scene_id, wh))
+                    expected, source = wh, f"the other images of scene {scene_id}"
         elif sizes:
             expected = Counter(sizes.values()).most_common(1)[0][0]
             source = f"the other images of scene {scene_id}"
@@ -568,8 +596,11 @@ class _Validator:
         if expected is not None:
             for im, wh in sizes.items():
                 if tuple(wh) != tuple(expected):
+                    K = cams[im].K
+                    also = f"; cam_K's principal point ({K[0, 2]:.6g}, {K[1, 2]:.6g}) lies outside it" \
+                        if pp_outside(K, wh) else ""
                     p.add(rgb[im], f"image {im}", f"image is {_fmt_size(wh)} px, expected {_fmt_size(expected)} "
-                          f"({source})", group=img_dir, check="image size")
+                          f"({source}{also})", group=img_dir, check="image size")
         self._check_scene_camera(cams, cam_path, expected)
 
         def size_check(path: Path, im: int, what: str, group: Path) -> bool:
@@ -638,6 +669,30 @@ class _Validator:
                     if mdir.name.startswith("mask_visib") and dmm is not None and (im, k) in poses_ok \
                             and m.shape == dmm.shape:
                         self._depth_vs_gt(dmm, m, depth[im], im, k, poses_ok[(im, k)])
+            if dmm is not None and gt is not None and not any(d.name.startswith("mask_visib") for d in mask_dirs):
+                self._depth_scale(dmm, cams[im], gt.get(im, []), poses_ok, depth[im], scene_id, im)
+
+    def _depth_scale(self, depth_mm, cam, insts, poses_ok, depth_path: Path, scene_id: int, im: int) -> None:
+        """Without visible masks: the stages' check (:func:`cosy_cli.io.dataset.depth_vs_gt`, the GT
+        boxes' centres against the measured depth); one warning for the split (see check_scenes)."""
+        if self.objects is None or scene_id in self.depth_scale_done:
+            return
+        keep = [k for k in range(len(insts)) if (im, k) in poses_ok]
+        if not keep:
+            return
+        T = np.stack([insts[k].T_cam_obj for k in keep])
+        corners = np.stack([self.objects[insts[k].obj_id].corners for k in keep])
+        measured, z_min, z_max = depth_vs_gt(depth_mm, cam.K, T, corners)
+        ok = np.isfinite(measured)
+        if not ok.any():
+            return
+        self.depth_scale_done.add(scene_id)
+        zc = T[ok, 2, 3]
+        tol = DEPTH_SCALE_RTOL * zc
+        off = (measured[ok] < z_min[ok] - tol) | (measured[ok] > z_max[ok] + tol)
+        if 2 * int(off.sum()) > len(off):
+            self.depth_scale_off.append((depth_path, im, float(np.median(measured[ok] / zc)), int(off.sum()),
+                                         len(off), cam.depth_scale))
 
     def _gt_vs_info(self, gt, info, gt_path: Path, info_path: Path) -> None:
         p = self.p

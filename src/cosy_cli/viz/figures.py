@@ -280,14 +280,12 @@ def _load_group(run_dir: Path, scene_id: int, group_id: int, dataset: BopDataset
             for m in o["merged_object_ids"]:
                 object_id[(object_id == m) & in_group] = o["object_id"]
 
-    from ..io import images
-
     views = []
     T_all = cands.T_cam_obj
     for i in im_ids:
         sel = np.flatnonzero(in_group & (c_im == i))
         sel = sel[np.argsort(-tab["score"].to_numpy()[sel], kind="stable")]
-        size = images.image_size(dataset.rgb_path(s, i))
+        size = dataset.image_size(s, i)  # checked against the camera file / cam_K
         views.append(ViewData(im_id=i, K=cams[i].K, size=size, cand_obj_ids=tab["obj_id"].to_numpy()[sel],
                               cand_T=T_all[sel], cand_object=object_id[sel] if mgroup is not None else
                               np.zeros(len(sel), dtype=np.int64) - 2, cand_score=tab["score"].to_numpy()[sel],
@@ -400,8 +398,6 @@ def visible_mask_ious(instance: np.ndarray, inst_obj_ids, gt_masks: np.ndarray, 
 def _gt_visible_masks(data: GroupData, im_id: int, min_visib: float = 0.1):
     """(masks (m, H, W) bool, obj_ids (m,), gt indices) of the GT instances visible in a view,
     or None when the dataset has no GT masks for it."""
-    from ..io import images
-
     ds, s = data.dataset, data.scene_id
     if not ds.has_gt(s):
         return None
@@ -411,7 +407,7 @@ def _gt_visible_masks(data: GroupData, im_id: int, min_visib: float = 0.1):
     paths = [ds.mask_path(s, im_id, k, visib=True) for k in keep]
     if not keep or not all(p.is_file() for p in paths):
         return None
-    masks = np.stack([images.read_mask(p) for p in paths])
+    masks = np.stack([ds.read_mask(s, im_id, k, visib=True) for k in keep])  # checked: image size
     return masks, np.array([gts[k].obj_id for k in keep]), keep
 
 
@@ -819,8 +815,6 @@ def build_group_figure(data: GroupData, mr: MeshRenderer, *, max_cols: int = 8, 
     from matplotlib.figure import Figure
     from matplotlib.gridspec import GridSpec
 
-    from ..io import images
-
     t0 = time.perf_counter()
     views = data.views
     n = len(views)
@@ -858,7 +852,7 @@ def build_group_figure(data: GroupData, mr: MeshRenderer, *, max_cols: int = 8, 
 
     for k, v in enumerate(views):
         r, c = divmod(k, ncols)
-        img = images.read_rgb(data.dataset.rgb_path(data.scene_id, v.im_id))
+        img = data.dataset.read_rgb(data.scene_id, v.im_id)
         ax = fig.add_subplot(gs[blocks * r, c])  # wrapped rows: candidates above refined, chunk by chunk
         _image_axes(ax, _downscale(img, px), v.size)
         _draw_candidates(ax, v, renders[v.im_id], data.matched)
