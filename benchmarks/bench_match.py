@@ -168,6 +168,7 @@ def main() -> None:
               f"candidates from synth-candidates (seed 0)")
         root = make_table_dataset(work / "tables", n_scenes=n_scenes, n_views=6, n_objects=8, seed=0, models="synth")
         for profile, known, conf, knobs in (("realistic", False, "paper", {}),
+                                            ("realistic", False, "paper-fixed", {}),  # before issue 16
                                             ("realistic", False, "paper-norefit", {}),
                                             ("realistic", True, "paper", {}),
                                             ("realistic", False, "paper", {"fp_per_image": 2.0}),

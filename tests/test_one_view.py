@@ -46,7 +46,8 @@ def test_one_image_dataset_runs_through_cosy_run_to_evaluation(one_image, templa
     scene = json.loads((run / "refine" / "scene.json").read_text())
     (g,) = scene["groups"]
     assert g["single_view"] and g["note"] == "single view: candidates passed through"
-    assert g["cameras"] == [{"im_id": 0, "T_world_cam": np.eye(4).tolist()}] and g["unplaced_im_ids"] == []
+    assert g["cameras"] == [{"im_id": 0, "T_world_cam": np.eye(4).tolist(), "placed_by": "single view"}] \
+        and g["unplaced_im_ids"] == []
     assert "single-view group(s): candidates passed through" in (run / "scenes" / "000001" / "log.txt").read_text()
     # evaluated: single view and "multi-view" score the same predictions alike
     sv, mv = m["metrics"]["single_view"], m["metrics"]["multi_view"]

@@ -102,7 +102,7 @@ def test_exact_candidates_give_an_exact_scene(tables, tmp_path):
 def test_realistic_candidates_are_improved(tables, tmp_path):
     csv = _cands(tables, tmp_path, "realistic", seed=3)
     m = _match(tables, csv, tmp_path / "m")
-    _refine(tables, m, tmp_path / "r")
+    _refine(tables, m, tmp_path / "r", output="scene")
     cands = bop.read_results(m / "candidates.csv")
     matches = pd.read_csv(m / "matches.csv")
     used = matches.cand_id[matches.object_id >= 0].to_numpy()
@@ -121,10 +121,10 @@ def test_realistic_candidates_are_improved(tables, tmp_path):
     assert np.median(err[:, 0]) < 1.5 and np.median(err[:, 1]) < 15.0
 
 
-def test_known_cameras_world_frame_and_keep_unmatched(tables, tmp_path):
+def test_known_cameras_world_frame_and_output(tables, tmp_path):
     csv = _cands(tables, tmp_path, "realistic", seed=4, fp_per_image=1.0)
     m = _match(tables, csv, tmp_path / "m", known_cameras=True)
-    _refine(tables, m, tmp_path / "r")
+    _refine(tables, m, tmp_path / "r", output="scene")
     scene = json.loads((tmp_path / "r" / "scene.json").read_text())
     ds = BopDataset(tables, "test")
     assert scene["known_cameras"] and "dataset world" in scene["world_frame"]
@@ -132,15 +132,33 @@ def test_known_cameras_world_frame_and_keep_unmatched(tables, tmp_path):
         cams = ds.scene_camera(g["scene_id"])
         for c in g["cameras"]:
             np.testing.assert_allclose(c["T_world_cam"], invert(cams[c["im_id"]].T_cam_world), atol=1e-6)
+            assert c["placed_by"] == "known"
     base = bop.read_results(tmp_path / "r" / "predictions.csv")
-    summary = _refine(tables, m, tmp_path / "r2", keep_unmatched=True)
+    assert base.table.score.min() >= 1.0  # refined predictions: 1 + the object's score
+    # default output (the paper's ba_output+all_cand): + the candidates no refined object explains
+    summary = _refine(tables, m, tmp_path / "r2")
     more = bop.read_results(tmp_path / "r2" / "predictions.csv")
-    assert summary["unmatched_predictions"] > 0
+    assert summary["output"] == "scene+candidates" and summary["unmatched_predictions"] > 0
     assert len(more) == len(base) + summary["unmatched_predictions"]
+    fb = more.table.score.to_numpy() < 1.0
+    assert fb.sum() == summary["unmatched_predictions"]
+    assert more.table.score[fb].max() < base.table.score.min()  # strictly below every refined prediction
     cands = bop.read_results(m / "candidates.csv")
-    extra = more.table.score.to_numpy()[more.table.score.to_numpy() < 0.1 * cands.table.score.max() + 1e-12]
-    assert len(extra) >= summary["unmatched_predictions"]
-    assert more.table.score.min() < base.table.score.min()
+    diam = {o: i.diameter for o, i in ds.models_info().items()}
+    ref = more.table[~fb]
+    for i in np.flatnonzero(fb):
+        r = more.table.iloc[i]
+        # a fallback is a candidate, unchanged, with half its score ...
+        same = np.flatnonzero((cands.table.im_id == r.im_id) & (cands.table.obj_id == r.obj_id)
+                              & (np.abs(cands.table.score * 0.5 - r.score) < 1e-6)).tolist()
+        assert any(np.allclose(cands.T_cam_obj[c], more.T_cam_obj[i], atol=1e-4) for c in same)
+        # ... that no refined prediction of its label in its image explains
+        k = np.flatnonzero((ref.scene_id == r.scene_id) & (ref.im_id == r.im_id) & (ref.obj_id == r.obj_id))
+        d = np.linalg.norm(more.T_cam_obj[ref.index[k], :3, 3] - more.T_cam_obj[i, :3, 3], axis=1)
+        assert (d >= 0.5 * diam[int(r.obj_id)]).all()
+    # the old setting is the new default
+    assert refine_stage.resolve_conf(None, keep_unmatched=True)["output"] == "scene+candidates"
+    assert refine_stage.resolve_conf({"keep_unmatched": False})["output"] == "scene"
 
 
 def test_nms_merges_objects_of_a_label(tables, tmp_path):

@@ -20,13 +20,25 @@ from .common import dataset_options, user_errors
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="Output folder: matches.csv, view_pairs.csv, groups.json, candidates.csv.")
 @click.option("--conf", default="paper", show_default=True,
-              help="Named configuration (paper: the paper's values; paper-norefit: no least-squares refit).")
+              help="Named configuration (paper: the paper's values + cosy's additions (refit, adaptive "
+                   "threshold, 1-2 object links); paper-fixed: the fixed 2 cm and >= 3 inliers; paper-norefit: "
+                   "as published, also without the least-squares refit).")
 @click.option("--views-per-group", type=click.IntRange(min=2), default=None,
               help="Split each scene's images (sorted by im_id) into consecutive groups of N (default: one group).")
 @click.option("--known-cameras", is_flag=True,
               help="Take camera poses from cam_R_w2c/cam_t_w2c and only associate candidates (no RANSAC).")
 @click.option("--threshold-mm", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Inlier threshold on the symmetric distance D_l, mm [paper: 20].")
+              help="Inlier threshold on the symmetric distance D_l, mm: the floor of the adaptive threshold, "
+                   "the threshold itself with --threshold-rel 0 --adaptive-k 0 [paper: 20].")
+@click.option("--threshold-rel", type=click.FloatRange(min=0), default=None,
+              help="Ceiling of the inlier threshold: max(threshold_mm, this x the objects' distance to the "
+                   "cameras); RANSAC runs with it (0: the fixed threshold_mm) [0.1].")
+@click.option("--adaptive-k", type=click.FloatRange(min=0), default=None,
+              help="Final inlier threshold per group: clip(k x the median inlier distance relative to the "
+                   "distance x distance, threshold_mm, ceiling) (0: keep the ceiling) [3].")
+@click.option("--weak-links/--no-weak-links", default=None,
+              help="Link views through 1-2 objects where RANSAC (>= min_inliers) cannot: two objects that agree, "
+                   "or one object without symmetry, with no label contradicting [on].")
 @click.option("--ransac-iterations", type=click.IntRange(min=1), default=None,
               help="Max hypotheses (pairs of candidate pairs) per view pair [paper: 2000].")
 @click.option("--ransac-confidence", type=click.FloatRange(min=0, max=1, min_open=True), default=None,
@@ -43,7 +55,7 @@ from .common import dataset_options, user_errors
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, views_per_group, known_cameras: bool,
-          threshold_mm, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
+          threshold_mm, threshold_rel, adaptive_k, weak_links, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
           overwrite: bool) -> None:
     """Match object candidates across views (CosyPose stage 2): RANSAC per view pair, scene graph.
 
@@ -53,7 +65,8 @@ def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, vie
     from ..multiview import match_stage
 
     c = match_stage.resolve_conf(conf, views_per_group=views_per_group, known_cameras=known_cameras or None,
-                                 threshold_mm=threshold_mm, ransac_iterations=ransac_iterations,
+                                 threshold_mm=threshold_mm, threshold_rel=threshold_rel, adaptive_k=adaptive_k,
+                                 weak_links=weak_links, ransac_iterations=ransac_iterations,
                                  ransac_confidence=ransac_confidence,
                                  min_inliers=min_inliers, score_threshold=score_threshold,
                                  symmetry_steps=symmetry_steps, refit=refit, seed=seed)

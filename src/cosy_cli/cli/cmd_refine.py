@@ -23,8 +23,19 @@ from .common import dataset_options, user_errors
               help="Levenberg-Marquardt iterations at most [paper: 100].")
 @click.option("--loss-threshold-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Truncation of the per-point reprojection error, pixels [25].")
-@click.option("--keep-unmatched", is_flag=True, default=None,
-              help="Also output the candidates not used in a scene, unchanged, with their score x 0.1.")
+@click.option("--output", "output", type=click.Choice(["scene+candidates", "scene"]), default=None,
+              help="predictions.csv: the refined objects in every placed view + the single-view candidates no "
+                   "refined object explains, scored strictly below (the paper's ba_output+all_cand), or the "
+                   "refined scene alone [scene+candidates].")
+@click.option("--explained-frac", type=click.FloatRange(min=0), default=None,
+              help="A candidate is explained by a refined prediction of its label in its image whose centre is "
+                   "closer than this fraction of the diameter [0.5].")
+@click.option("--min-agreeing", type=click.IntRange(min=0), default=None,
+              help="Views in which a refined object needs a candidate that agrees with it (mean reprojection "
+                   "error under half the loss threshold), else it is dropped; a view without one gets no refined predictions "
+                   "(0: off) [2].")
+@click.option("--keep-unmatched", is_flag=True, default=None, hidden=True,
+              help="Old name of --output scene+candidates.")
 @click.option("--nms-mm", type=click.FloatRange(min=0), default=None,
               help="Merge objects of one label whose centres are closer than this, mm (0: off) [0].")
 @click.option("--exclusion-frac", type=click.FloatRange(min=0), default=None,
@@ -32,8 +43,8 @@ from .common import dataset_options, user_errors
                    "the smaller diameter: two solids cannot overlap (0: off) [0.5].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
-def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, keep_unmatched, nms_mm,
-           exclusion_frac, overwrite: bool) -> None:
+def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, output, explained_frac,
+           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, overwrite: bool) -> None:
     """Refine cameras and objects jointly per group (CosyPose stage 3): every object in every placed view.
 
     Writes OUT atomically; skips when OUT is complete and up to date (unless --overwrite).
@@ -44,7 +55,8 @@ def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss
     from ..multiview import refine_stage
 
     c = refine_stage.resolve_conf(None, iterations=iterations, loss_threshold_px=loss_threshold_px,
-                                  keep_unmatched=keep_unmatched, nms_mm=nms_mm,
+                                  output=output or ("scene+candidates" if keep_unmatched else None),
+                                  explained_frac=explained_frac, min_agreeing=min_agreeing, nms_mm=nms_mm,
                                   exclusion_frac=exclusion_frac)
     refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=click.echo)
 

@@ -19,7 +19,10 @@ read. Output folder (built atomically: an interrupted run leaves nothing under `
 ``groups.json``
     Self-describing record for ``cosy refine``: version, conf, dataset, split, candidates path,
     known_cameras, and per group its scene, image ids, objects (obj_id, member cand_ids and
-    their im_ids), discarded cand_ids, view pairs (with their associations) and timing.
+    their im_ids), discarded cand_ids, view pairs (with their associations, ``link``: "ransac",
+    "two objects", "one object" or "none", and ``threshold_mm``: the inlier threshold used),
+    ``threshold`` (the rule, the estimated relative noise ``residual_scale``, min/max mm) and
+    timing.
 ``candidates.csv``
     A copy of the input candidates (same rows, same order: cand_id = row).
 ``manifest.json``
@@ -49,7 +52,7 @@ from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from ..geometry.sampling import farthest_point_subset
-from .matching import GroupResult, LabelTable, MatchParams, match_groups
+from .matching import LINK_NAMES, GroupResult, LabelTable, MatchParams, match_groups
 
 FORMAT_VERSION = 1
 BATCH_CANDIDATES = 2000  # groups are matched together until a batch holds this many candidates
@@ -75,9 +78,17 @@ CONFS: dict[str, dict] = {
         "views_per_group": None,
         "known_cameras": False,
         "seed": 0,
+        # cosy's additions for real data (issue 16): an inlier threshold that follows the
+        # candidates' noise, and views linked through 1-2 objects (see cosy_cli.multiview.matching)
+        "threshold_rel": 0.10,
+        "adaptive_k": 3.0,
+        "weak_links": True,
     },
 }
-CONFS["paper-norefit"] = {**CONFS["paper"], "refit": False}  # the hypothesis of one candidate pair, as published
+# As published: one candidate pair's hypothesis (no refit), the fixed 2 cm, >= 3 inliers
+CONFS["paper-norefit"] = {**CONFS["paper"], "refit": False, "threshold_rel": 0.0, "adaptive_k": 0.0,
+                          "weak_links": False}
+CONFS["paper-fixed"] = {**CONFS["paper"], "threshold_rel": 0.0, "adaptive_k": 0.0, "weak_links": False}
 
 
 def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
@@ -87,6 +98,7 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
         "threshold_mm": lambda v: v > 0, "ransac_iterations": lambda v: v >= 1, "min_inliers": lambda v: v >= 1,
         "symmetry_steps": lambda v: v >= 1, "n_points": lambda v: v >= 3, "sym_candidates": lambda v: v >= 1,
         "views_per_group": lambda v: v is None or v >= 2, "ransac_confidence": lambda v: 0 < v <= 1,
+        "threshold_rel": lambda v: 0 <= v < 10, "adaptive_k": lambda v: 0 <= v < 1000,
     }
     for k, ok in checks.items():
         try:
@@ -99,6 +111,9 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
         base[k] = int(base[k])
     base["threshold_mm"] = float(base["threshold_mm"])
     base["ransac_confidence"] = float(base["ransac_confidence"])
+    base["threshold_rel"] = float(base["threshold_rel"])
+    base["adaptive_k"] = float(base["adaptive_k"])
+    base["weak_links"] = bool(base["weak_links"])
     base["score_threshold"] = float(base["score_threshold"])
     base["refit"] = bool(base["refit"])
     base["known_cameras"] = bool(base["known_cameras"])
@@ -351,6 +366,22 @@ def single_view_result(n: int) -> GroupResult:
                        edge_kept=np.zeros(0, dtype=bool))
 
 
+def _threshold_record(conf: dict, res: GroupResult) -> dict:
+    """What groups.json says of a group's inlier threshold: the rule, the noise estimated from
+    the candidates and the threshold of its view pairs (mm)."""
+    thr = res.threshold_mm if res.threshold_mm is not None else np.full(len(res.pair_views), conf["threshold_mm"])
+    rec = {"min_mm": round(float(thr.min()), 3), "max_mm": round(float(thr.max()), 3)}
+    if conf["threshold_rel"] > 0 or conf["adaptive_k"] > 0:
+        est = bool(np.isfinite(res.residual_scale)) and conf["adaptive_k"] > 0
+        rec["rule"] = (f"clip({conf['adaptive_k']:g} x residual scale x distance, {conf['threshold_mm']:g} mm, "
+                       f"ceiling)" if est else "ceiling (noise not estimated: too few associations)")
+        rec["ceiling"] = f"max({conf['threshold_mm']:g} mm, {conf['threshold_rel']:g} x distance)"
+        rec["residual_scale"] = round(float(res.residual_scale), 5) if est else None
+    else:
+        rec["rule"] = f"fixed {conf['threshold_mm']:g} mm"
+    return rec
+
+
 def _fmt_pose(T: np.ndarray) -> tuple[str, str]:
     return " ".join(f"{v:.9g}" for v in T[:3, :3].reshape(-1)), " ".join(f"{v:.6f}" for v in T[:3, 3])
 
@@ -372,7 +403,8 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     table = load_label_table(ds, used, conf["n_points"], conf["symmetry_steps"]) if used else None
     params = MatchParams(threshold_mm=conf["threshold_mm"], ransac_iterations=conf["ransac_iterations"],
                          min_inliers=conf["min_inliers"], refit=conf["refit"], sym_candidates=conf["sym_candidates"],
-                         ransac_confidence=conf["ransac_confidence"])
+                         ransac_confidence=conf["ransac_confidence"], threshold_rel=conf["threshold_rel"],
+                         adaptive_k=conf["adaptive_k"], weak_links=conf["weak_links"])
     lab_all = table.index_of(objs) if used else np.zeros(0, dtype=np.int64)
     # candidates of each (scene, im)
     key = scenes * (1 << 32) + ims
@@ -465,7 +497,10 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
             e = np.flatnonzero(res.edge_pair == p)
             pairs.append({
                 "im_id_a": im_ids[a], "im_id_b": im_ids[b], "n_inliers": int(res.n_inliers[p]),
-                "linked": bool(res.linked[p]), "n_hypotheses": int(res.n_hypotheses[p]),
+                "linked": bool(res.linked[p]), "link": LINK_NAMES[int(res.link_kind[p])] if res.link_kind is not None
+                else ("ransac" if res.linked[p] else "none"),
+                "threshold_mm": None if res.threshold_mm is None else round(float(res.threshold_mm[p]), 3),
+                "n_hypotheses": int(res.n_hypotheses[p]),
                 "T_cam_a_cam_b": [[float(f"{v:.10g}") for v in row] for row in res.T_ab[p]],
                 "associations": [[int(idx[res.edges[k, 0]]), int(idx[res.edges[k, 1]]),
                                   float(f"{res.edge_dist[k]:.4f}"), bool(res.edge_kept[k])] for k in e],
@@ -482,6 +517,8 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
             "discarded": [int(c) for c in members_all if object_id[c] < 0],
             "view_pairs": pairs, "time_s": round(g["time_s"], 6),
         }
+        if len(res.pair_views):
+            entry["threshold"] = _threshold_record(conf, res)
         if len(im_ids) == 1:
             entry["single_view"] = True
             entry["note"] = SINGLE_VIEW_NOTE

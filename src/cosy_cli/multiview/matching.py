@@ -91,6 +91,24 @@ Additions to the paper (documented choices)
   association is an edge (``min_inliers`` guards against wrong camera hypotheses; there are
   none).
 
+For real data (issue 16; all off with ``threshold_rel = adaptive_k = 0``, ``weak_links`` False)
+----------------------------------------------------------------------------------------------
+* An inlier threshold that follows the candidates' noise. A fixed 2 cm fails when the error
+  grows with distance (an RGB method's depth error is ~1-5 % of it: 10-50 mm at 1 m). Each view
+  pair gets the ceiling ``max(threshold_mm, threshold_rel x z)``, z = the mean over its two views
+  of the median distance of their candidates' centres to the camera; RANSAC, the associations
+  and the refit run with it. Then, with ``adaptive_k`` > 0, the group's noise is estimated from
+  its own inliers: s = median over the associations of view pairs with >= ``min_inliers`` of
+  them of D_l / distance (a robust relative scale), and the final threshold of each view pair
+  is ``clip(adaptive_k x s x z, threshold_mm, ceiling)`` (the ceiling where fewer than 3
+  associations give s); associations and refit are redone under it. Exact or clean candidates
+  get threshold_mm back; :class:`GroupResult` carries the threshold of every view pair and s.
+* Weak links (``weak_links``): a view pair with 1-2 associations is linked when RANSAC links
+  leave its views apart and the associations determine the relative pose -- two objects (the
+  hypothesis of one verified by the other), or one object without any symmetry -- and no label
+  seen exactly once in both views is left unassociated (that would contradict the pose). See
+  :meth:`_Group.weak_links`; ``GroupResult.link_kind`` says how each pair was linked.
+
 Units: mm. Poses are 4x4 ``T_a_b`` matrices (maps frame b into frame a).
 """
 
@@ -115,6 +133,11 @@ class MatchParams:
     refit: bool = True  # least-squares refit of the winning T_ab on its inliers
     sym_candidates: int = 4  # symmetries S tried with the full D_l when choosing S* of a hypothesis
     ransac_confidence: float = 0.99  # stop drawing once two inlier pairs were drawn with this probability
+    # inlier threshold that follows the candidates' noise (0, 0: the fixed threshold_mm)
+    threshold_rel: float = 0.0  # ceiling: max(threshold_mm, threshold_rel x distance of the objects to the cameras)
+    adaptive_k: float = 0.0  # final: clip(adaptive_k x robust residual scale of the group, threshold_mm, ceiling)
+    # views linked by 1-2 objects (fewer than min_inliers), with stricter checks (see weak links)
+    weak_links: bool = False
 
 
 class LabelTable:
@@ -371,10 +394,37 @@ class GroupResult:
     edge_dist: np.ndarray
     edge_pair: np.ndarray
     edge_kept: np.ndarray
+    threshold_mm: np.ndarray | None = None  # (P,) the inlier threshold used for each view pair, mm
+    link_kind: np.ndarray | None = None  # (P,) LINK_* code: how the pair is linked (LINK_NONE: not)
+    residual_scale: float = float("nan")  # robust scale of the inlier distances / distance (NaN: not estimated)
 
     @property
     def n_objects(self) -> int:
         return int(self.object_id.max()) + 1 if len(self.object_id) and self.object_id.max() >= 0 else 0
+
+
+LINK_NONE, LINK_RANSAC, LINK_TWO, LINK_ONE, LINK_KNOWN = 0, 1, 2, 3, 4
+LINK_NAMES = {LINK_NONE: "none", LINK_RANSAC: "ransac", LINK_TWO: "two objects", LINK_ONE: "one object",
+              LINK_KNOWN: "known cameras"}
+
+
+def _refit_pairs(g: "_Group", T_ab: np.ndarray, assoc: tuple, n_vp: np.ndarray) -> tuple[tuple, np.ndarray]:
+    """Least-squares refit of the linked pairs' T_ab (in place) on their associations, kept
+    where it has at least as many inliers; returns the associations and counts after it."""
+    vps, T_ref = g.refit(assoc, n_vp)
+    if not len(vps):
+        return assoc, n_vp
+    a2 = g.associate_with(vps, T_ref)
+    n2 = np.bincount(a2[4], minlength=g.nvp)
+    accept = np.zeros(g.nvp, dtype=bool)
+    accept[vps] = n2[vps] >= n_vp[vps]
+    T_ab[vps[accept[vps]]] = T_ref[accept[vps]]
+    keep_old = ~accept[assoc[4]]
+    keep_new = accept[a2[4]]
+    assoc = tuple(np.concatenate([x[keep_old], y[keep_new]]) for x, y in zip(assoc, a2))
+    o = np.lexsort((assoc[2], assoc[4]))
+    assoc = tuple(x[o] for x in assoc)
+    return assoc, np.bincount(assoc[4], minlength=g.nvp)
 
 
 _TRIU: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -426,6 +476,20 @@ def _ragged_arange(counts: np.ndarray) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     starts = np.repeat(np.cumsum(counts) - counts, counts)
     return np.arange(total, dtype=np.int64) - starts
+
+
+def _median_by(values: np.ndarray, keys: np.ndarray, n: int) -> np.ndarray:
+    """Median of ``values`` for each key in [0, n) (0 where a key has no value)."""
+    out = np.zeros(n)
+    if len(values) == 0:
+        return out
+    o = np.lexsort((values, keys))
+    k, v = keys[o], values[o]
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    cnt = np.diff(np.r_[starts, len(k)])
+    lo, hi = starts + (cnt - 1) // 2, starts + cnt // 2
+    out[k[starts]] = 0.5 * (v[lo] + v[hi])
+    return out
 
 
 def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -488,7 +552,18 @@ class _Group:
         self.plab = self.lab[self.pI]
         self.m = np.bincount(self.pvp, minlength=self.nvp)
         self.off = np.cumsum(self.m) - self.m
-        self.thr = float(params.threshold_mm)
+        # distance of each view's objects to its camera (median over its candidates, mm) and of
+        # each view pair (mean of its two views): the scale of depth errors
+        self.dist = _norm3(self.cc) if self.n else np.zeros(0)
+        zv = _median_by(self.dist, self.view, self.n_views)
+        self.z_vp = 0.5 * (zv[self.pair_views[:, 0]] + zv[self.pair_views[:, 1]]) if self.nvp else np.zeros(0)
+        self.thr_ceiling = np.maximum(float(params.threshold_mm), float(params.threshold_rel) * self.z_vp)
+        self.set_thresholds(self.thr_ceiling)
+
+    def set_thresholds(self, thr_vp: np.ndarray) -> None:
+        """The inlier threshold on D_l of every view pair (nvp,) mm."""
+        self.thr_vp = np.asarray(thr_vp, dtype=np.float64).reshape(self.nvp)
+        self.thr_max = float(self.thr_vp.max()) if self.nvp else float(self.params.threshold_mm)
 
     # ---- hypotheses ------------------------------------------------------------------------
     def ransac(self, seeds):
@@ -503,7 +578,9 @@ class _Group:
         pvp, plab, m, nvp = self.pvp, self.plab, self.m, self.nvp
         Ksym = tab.n_sym[plab]
         usable = m[pvp] >= 2
-        asym_p = np.flatnonzero(usable & (Ksym == 1))
+        # one candidate pair of an object without symmetry is a hypothesis of its own (it can
+        # only make a weak link: one inlier)
+        asym_p = np.flatnonzero((usable | (p.weak_links & (m[pvp] >= 1))) & (Ksym == 1))
         sym_p = np.flatnonzero(usable & (Ksym > 1))  # sorted by view pair
         n_sym = np.bincount(pvp[sym_p], minlength=nvp)
         sym_off = np.cumsum(n_sym) - n_sym
@@ -588,15 +665,16 @@ class _Group:
 
     def _second_pairs(self, c1: np.ndarray, c2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """S* of (first pair c1, second pair c2) combinations that can be consistent."""
-        tab, thr = self.table, self.thr
+        tab = self.table
         pI, pJ, plab = self.pI, self.pJ, self.plab
         al, be, ga, de = pI[c1], pJ[c1], pI[c2], pJ[c2]
         ok = (al != ga) & (be != de)
         l1, l2 = plab[c1], plab[c2]
+        thr = self.thr_vp[self.pvp[c1]]  # the view pair's inlier threshold, per combination
         da = _norm3(self.cc[al] - self.cc[ga])
         db = _norm3(self.cc[be] - self.cc[de])
         ok &= np.abs(da - db) <= thr + self.r[l1] + self.r[l2]
-        c1, c2, al, be, ga, de, l1, l2 = (x[ok] for x in (c1, c2, al, be, ga, de, l1, l2))
+        c1, c2, al, be, ga, de, l1, l2, thr = (x[ok] for x in (c1, c2, al, be, ga, de, l1, l2, thr))
         if len(c1) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         u = _apply(self.Tinv[be], self.cc[de])  # delta's centre in beta's model frame
@@ -609,7 +687,7 @@ class _Group:
             rw = _norm3(w - o - hw[:, None] * a)
             dh = np.where(tab.axis_flip[l1], np.minimum(np.abs(hu - hw), np.abs(hu + hw)), np.abs(hu - hw))
             ok = ~ax | (np.hypot(dh, ru - rw) <= thr + self.r[l2])
-            c1, c2, al, be, ga, de, l1, l2, u, w = (x[ok] for x in (c1, c2, al, be, ga, de, l1, l2, u, w))
+            c1, c2, al, be, ga, de, l1, l2, u, w, thr = (x[ok] for x in (c1, c2, al, be, ga, de, l1, l2, u, w, thr))
         ns = int(self.params.sym_candidates)
         cand_s, cand_ok = [], []
         rows = []
@@ -631,7 +709,7 @@ class _Group:
                 top = np.take_along_axis(top, np.argsort(np.take_along_axis(cd, top, 1), axis=1, kind="stable"), 1)
             else:
                 top = np.argsort(cd, axis=1, kind="stable")
-            good = np.take_along_axis(cd, top, 1) <= thr + self.r[l2[idx]][:, None]
+            good = np.take_along_axis(cd, top, 1) <= (thr[idx] + self.r[l2[idx]])[:, None]
             if sidx is not None:
                 top = np.take_along_axis(sidx, top, 1)
             if q < ns:
@@ -657,13 +735,13 @@ class _Group:
         A = self.Tinv[ga[c]] @ self.T[al[c]]
         B = self.Tinv[be[c]] @ self.T[de[c]]
         M = A @ tab.S[l1[c], s] @ B
-        D, _ = symmetric_distance_rel(tab, l2[c], M, cap=thr)
+        D, _ = symmetric_distance_rel(tab, l2[c], M, cap=self.thr_max)
         # per combination (row index c): argmin D over its candidate symmetries; a hypothesis
         # under which its own second pair is not an inlier is dropped
         o = np.lexsort((D, c))
         c, s, D = c[o], s[o], D[o]
         first = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
-        first = first[D[first] < thr]
+        first = first[D[first] < thr[c[first]]]
         return np.concatenate([p_one, c1[c[first]]]), np.concatenate([s_one, s[first]])
 
     # ---- scoring ---------------------------------------------------------------------------
@@ -682,7 +760,7 @@ class _Group:
         else:  # many groups matched together: per row
             pred = _apply(T_ab[hf], self.cc[self.pJ[pf]])  # centre of j under the hypothesis
         lab = self.plab[pf]
-        poss = _norm3(self.cc[self.pI[pf]] - pred) <= self.thr + self.r[lab]
+        poss = _norm3(self.cc[self.pI[pf]] - pred) <= self.thr_vp[self.pvp[pf]] + self.r[lab]
         rh, rp = hf[poss], pf[poss]
         key = rh * max(self.n, 1) + self.pI[rp]
         first = np.r_[True, key[1:] != key[:-1]] if len(key) else np.zeros(0, bool)
@@ -692,11 +770,11 @@ class _Group:
     def evaluate(self, rh, rp, T_ab):
         """Exact D_l (and symmetry index) for rows (hypothesis rh, pair rp)."""
         M = self.Tinv[self.pI[rp]] @ T_ab[rh] @ self.T[self.pJ[rp]]
-        return symmetric_distance_rel(self.table, self.plab[rp], M, cap=self.thr)
+        return symmetric_distance_rel(self.table, self.plab[rp], M, cap=self.thr_max)
 
     def counts(self, rh, rp, D, H):
         """Inlier count and sum of inlier distances per hypothesis (distinct candidates of a)."""
-        inl = np.flatnonzero(D < self.thr)
+        inl = np.flatnonzero(D < self.thr_vp[self.pvp[rp]])
         cnt = np.zeros(H, dtype=np.int64)
         res = np.zeros(H)
         if len(inl) == 0:
@@ -785,7 +863,7 @@ class _Group:
     def associate(self, rp, D, s):
         """One-to-one inlier associations from rows (pair rp, D_l, symmetry index) of one
         hypothesis per view pair. Returns (i, j, D, s, vp) arrays sorted by view pair then D."""
-        sel = np.flatnonzero(D < self.thr)
+        sel = np.flatnonzero(D < self.thr_vp[self.pvp[rp]])
         i, j, d, ss = self.pI[rp[sel]], self.pJ[rp[sel]], D[sel], s[sel]
         vp = self.pvp[rp[sel]]
         o = np.lexsort((j, i, d, vp))
@@ -856,6 +934,71 @@ class _Group:
         T[:, :3, :3], T[:, :3, 3] = R, t
         return vps[good], T[good]
 
+    def residual_scale(self, assoc, n_vp, n_groups: int) -> np.ndarray:
+        """Robust scale of the candidates' noise per group: the median, over the associations of
+        view pairs with at least ``min_inliers`` of them, of D_l divided by the objects' distance
+        to the cameras (a relative error, like the depth error of an RGB method); NaN for a
+        group with fewer than 3 such associations. (n_groups,)."""
+        i, j, d, _, vp = assoc
+        ok = n_vp[vp] >= max(2, int(self.params.min_inliers))
+        i, j, d, vp = i[ok], j[ok], d[ok], vp[ok]
+        rel = d / np.maximum(0.5 * (self.dist[i] + self.dist[j]), 1e-9)
+        grp = self.vp_group[vp]
+        out = _median_by(rel, grp, n_groups)
+        out[np.bincount(grp, minlength=n_groups) < 3] = np.nan
+        return out
+
+    def weak_links(self, assoc, n_vp, link_kind):
+        """View pairs with 1 or 2 associations (fewer than ``min_inliers``) that link views which
+        the RANSAC links leave apart, when they determine the relative pose and nothing
+        contradicts them (the paper's Limitation III):
+
+        * two objects: the hypothesis from one was verified by the other;
+        * one object: only an object without symmetry (its pair alone fixes T_ab);
+        * no contradiction: every label seen exactly once in each of the two views is associated
+          (a label once in both views but not associated contradicts the pose).
+
+        Accepted greedily (two objects first, then smaller sum of distances), each only if it
+        joins two sets of views not linked otherwise. Returns the updated ``link_kind`` (nvp,)."""
+        link_kind = link_kind.copy()
+        mi = max(1, int(self.params.min_inliers))
+        weak = np.flatnonzero((n_vp >= 1) & (n_vp < mi))
+        if not len(weak):
+            return link_kind
+        i, j, d, _, vp = assoc
+        L = len(self.table)
+        cnt = np.bincount(self.view * L + self.lab, minlength=self.n_views * L).reshape(self.n_views, L)
+        parent = list(range(self.n_views))
+
+        def find(x):
+            while parent[x] != x:
+                parent[x] = parent[parent[x]]
+                x = parent[x]
+            return x
+
+        for p in np.flatnonzero(link_kind != LINK_NONE).tolist():
+            a, b = find(int(self.pair_views[p, 0])), find(int(self.pair_views[p, 1]))
+            if a != b:
+                parent[b] = a
+        cands = []
+        for p in weak.tolist():
+            rows = np.flatnonzero(vp == p)
+            labs = self.lab[i[rows]]
+            a, b = self.pair_views[p]
+            shared = np.flatnonzero((cnt[a] == 1) & (cnt[b] == 1))
+            if np.setdiff1d(shared, labs).size:
+                continue  # a label once in each view, not associated: contradicts the pose
+            if len(rows) == 1 and self.table.n_sym[labs[0]] > 1:
+                continue  # one symmetric object does not fix the relative pose
+            cands.append((0 if len(rows) >= 2 else 1, float(d[rows].sum()), p))
+        for rank, _, p in sorted(cands):
+            a, b = find(int(self.pair_views[p, 0])), find(int(self.pair_views[p, 1]))
+            if a == b:
+                continue
+            parent[b] = a
+            link_kind[p] = LINK_TWO if rank == 0 else LINK_ONE
+        return link_kind
+
 
 def _project_so3(A: np.ndarray) -> np.ndarray:
     """Closest rotations (Frobenius) to matrices A (k, 3, 3)."""
@@ -922,20 +1065,28 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
         assoc = g.associate(*best_rows)
     n_vp = np.bincount(assoc[4], minlength=g.nvp)
     if params.refit and not known:
-        vps, T_ref = g.refit(assoc, n_vp)
-        if len(vps):
-            a2 = g.associate_with(vps, T_ref)
-            n2 = np.bincount(a2[4], minlength=g.nvp)
-            accept = np.zeros(g.nvp, dtype=bool)
-            accept[vps] = n2[vps] >= n_vp[vps]
-            T_ab[vps[accept[vps]]] = T_ref[accept[vps]]
-            keep_old = ~accept[assoc[4]]
-            keep_new = accept[a2[4]]
-            assoc = tuple(np.concatenate([x[keep_old], y[keep_new]]) for x, y in zip(assoc, a2))
-            o = np.lexsort((assoc[2], assoc[4]))
-            assoc = tuple(x[o] for x in assoc)
-            n_vp = np.bincount(assoc[4], minlength=g.nvp)
-    linked = n_vp >= (1 if known else max(1, int(params.min_inliers)))
+        assoc, n_vp = _refit_pairs(g, T_ab, assoc, n_vp)
+    scale = np.full(len(groups), np.nan)
+    if params.adaptive_k > 0 and g.nvp:
+        # the threshold that fits the candidates' noise: k x the robust residual scale of the
+        # group (relative to the distance), between threshold_mm and the ceiling; then the
+        # associations again under the final threshold (and the refit on them)
+        scale = g.residual_scale(assoc, n_vp, len(groups))
+        s_vp = scale[g.vp_group]
+        thr = np.where(np.isfinite(s_vp), np.clip(float(params.adaptive_k) * s_vp * g.z_vp,
+                                                   float(params.threshold_mm), g.thr_ceiling), g.thr_ceiling)
+        g.set_thresholds(thr)
+        vps = np.flatnonzero(n_vp > 0)
+        assoc = g.associate_with(vps, T_ab[vps])
+        n_vp = np.bincount(assoc[4], minlength=g.nvp)
+        if params.refit and not known:
+            assoc, n_vp = _refit_pairs(g, T_ab, assoc, n_vp)
+    link_kind = np.where(n_vp >= (1 if known else max(1, int(params.min_inliers))), LINK_RANSAC, LINK_NONE)
+    if known:
+        link_kind[(n_vp > 0)] = LINK_KNOWN
+    elif params.weak_links:
+        link_kind = g.weak_links(assoc, n_vp, link_kind)
+    linked = link_kind != LINK_NONE
     ei, ej, ed, _, evp = assoc
     use = linked[evp]
     ei, ej, ed, evp = ei[use], ej[use], ed[use], evp[use]
@@ -962,7 +1113,8 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
         results.append(GroupResult(
             object_id=ids[inv_c].reshape(-1), pair_views=g.pair_views[sl] - f0, n_inliers=n_vp[sl], T_ab=T_ab[sl],
             linked=linked[sl], n_hypotheses=n_hyp[sl], edges=e_in[sel] - c0, edge_dist=ed[sel],
-            edge_pair=evp[sel] - vp0, edge_kept=kept[sel]))
+            edge_pair=evp[sel] - vp0, edge_kept=kept[sel], threshold_mm=g.thr_vp[sl].copy(),
+            link_kind=link_kind[sl].copy(), residual_scale=float(scale[k])))
         c0, vp0, f0 = c0 + n_k, vp0 + n_vp_k, f0 + nv_k
     return results
 

@@ -1,33 +1,41 @@
 """``cosy refine``: one consistent scene per group of views (CosyPose stage 3).
 
 Inputs: what ``cosy match`` wrote (``MATCH_DIR/groups.json``: groups, physical objects and
-their candidates, view pairs with relative poses; ``MATCH_DIR/candidates.csv``: the candidate
-poses) and the dataset's cameras (K, and the camera poses when match ran with
-``--known-cameras``) and models (points, symmetries). Per group: cameras are placed by chaining
-the linked view pairs' relative poses over a maximum-inlier spanning tree (or taken from the
-dataset with known cameras), objects from their best-scoring candidate, then cameras and
-objects are refined jointly by the object-level bundle adjustment of
-:mod:`cosy_cli.multiview.bundle_adjustment`.
+their candidates, view pairs with relative poses and how they were linked;
+``MATCH_DIR/candidates.csv``: the candidate poses) and the dataset's cameras (K, and the camera
+poses when match ran with ``--known-cameras``) and models (points, symmetries). Per group:
+cameras are placed by chaining the linked view pairs' relative poses over a maximum-inlier
+spanning tree (:mod:`cosy_cli.multiview.placement`: RANSAC links first, links through one or
+two objects only to reach views RANSAC leaves apart), or taken from the dataset with known
+cameras; objects from their most consistent candidate; then cameras and objects are refined
+jointly by the object-level bundle adjustment of :mod:`cosy_cli.multiview.bundle_adjustment`.
 
 Output folder (built atomically):
 
 ``scene.json``
     ``{"format": "cosy-refine", "version", "conf", "matches", ..., "world_frame",
-    "groups": [{"scene_id", "group_id", "gauge_im_id", "cameras": [{"im_id", "T_world_cam"}],
-    "unplaced_im_ids", "objects": [{"object_id", "obj_id", "score", "n_candidates", "cand_ids",
-    "reprojection_error_px", "T_world_obj"}], "stats": {...}}], "summary": {...}}``. 4x4
-    matrices in mm; the world frame is the gauge camera's frame (the view with most inliers),
-    or the dataset's world frame when match ran with ``--known-cameras``. ``stats``:
-    iterations, converged, initial and final cost (px^2: mean truncated squared reprojection
-    error), reprojection error per view (px, initial and final), candidates used, time.
+    "groups": [{"scene_id", "group_id", "gauge_im_id", "cameras": [{"im_id", "T_world_cam",
+    "placed_by"}], "unplaced_im_ids", "placed_by": {im_id: how}, "objects": [{"object_id",
+    "obj_id", "score", "n_candidates", "cand_ids", "reprojection_error_px", "T_world_obj"}],
+    "stats": {...}}], "summary": {...}}``. 4x4 matrices in mm; the world frame is the gauge
+    camera's frame (the view with most inliers), or the dataset's world frame when match ran with
+    ``--known-cameras``. ``placed_by`` says how each camera was placed: "gauge (world frame)",
+    "ransac (N inliers)", "two objects (obj_id A, B)", "one object (obj_id A)", "known",
+    "unplaced" (its candidates are kept as predictions), or "unplaced (its candidates disagree
+    with the refined scene)" (after the adjustment none of its candidates agrees with a refined
+    object: see ``min_agreeing``). ``stats``: iterations, converged,
+    initial and final cost (px^2: mean truncated squared reprojection error), reprojection error
+    per view (px, initial and final), candidates used, fallback candidates output, time.
 ``predictions.csv``
-    BOP results: one row per (object, placed camera): the object's pose in that camera,
-    T_cam_obj = inv(T_world_cam) T_world_obj; score = the object's score (the best score of its
-    candidates); time = seconds spent on the group. With ``keep_unmatched`` the candidates that
-    could not be used (discarded by match, or in views/objects that could not be placed) are
-    added unchanged with their score times ``unmatched_score_factor`` (so they rank below),
-    unless a refined prediction of the same object label lies within ``unmatched_dedup_mm`` of
-    them in that image.
+    BOP results. With ``output`` "scene+candidates" (default; the paper's
+    ``ba_output+all_cand``): one row per (refined object, placed camera), the object's pose in
+    that camera T_cam_obj = inv(T_world_cam) T_world_obj, score 1 + the object's score (the best
+    score of its candidates, clipped to [0, 1]); plus every candidate of the group that no refined
+    prediction of its label in its image explains (centres closer than ``explained_frac`` x the
+    diameter), unchanged, with half its score (clipped to [0, 1]) -- strictly below every refined
+    prediction, so that a BOP top-k per image and object takes a single-view estimate only where
+    the scene has none (objects seen in one view, views that could not be placed). With
+    ``output`` "scene": the refined rows alone. time = seconds spent on the group.
 ``manifest.json``
     sha1 and size of the two files above (:mod:`cosy_cli.io.manifest`), checked by ``cosy evaluate``.
 
@@ -55,6 +63,7 @@ from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from . import bundle_adjustment as ba
+from . import placement
 
 FORMAT_VERSION = 1
 OUTPUT_FILES = ("scene.json", "predictions.csv")
@@ -63,11 +72,20 @@ MATCH_FORMAT = ("cosy-match", 1)
 DEFAULT_CONF = {
     "iterations": ba.DEFAULT_ITERATIONS,  # LM iterations at most (paper: 100)
     "loss_threshold_px": ba.DEFAULT_LOSS_THRESHOLD_PX,  # truncation of the reprojection loss
-    "n_points": ba.DEFAULT_N_POINTS,  # model points per object label in the residuals
+    "n_points": ba.DEFAULT_N_POINTS,  # surface samples per label: the residuals use their bounding-box corners (as the original)
     "symmetry_steps": ba.DEFAULT_N_CONTINUOUS,  # continuous symmetries, steps per turn (paper: 64)
-    "keep_unmatched": False,
-    "unmatched_score_factor": 0.1,
-    "unmatched_dedup_mm": 20.0,
+    # What predictions.csv holds (the paper's ``ba_output+all_cand``): "scene+candidates" = the
+    # refined objects in every placed view, plus the single-view candidates that no refined
+    # object explains, scored strictly below every refined prediction; "scene" = the refined
+    # objects alone.
+    "output": "scene+candidates",
+    # a candidate is explained by a refined prediction of its label in its image whose centre
+    # is closer than this fraction of the object's diameter (two solids cannot be that close)
+    "explained_frac": 0.5,
+    # an object of the refined scene needs candidates that agree with it (mean reprojection error
+    # under half the loss threshold) in this many views, a view one such candidate; others are
+    # dropped (0: off)
+    "min_agreeing": 2,
     "nms_mm": 0.0,  # merge objects of one label whose centres are closer (0: off)
     # Two solid objects cannot share the space: objects of any labels whose centres are closer
     # than this fraction of the smaller diameter are one physical object (typically a look-alike
@@ -78,18 +96,48 @@ DEFAULT_CONF = {
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     """The full configuration: defaults, then ``conf``, then overrides (None ignored), checked."""
+    conf, overrides = _legacy_keys(conf), _legacy_keys(overrides)
     base = merge_conf({"default": DEFAULT_CONF}, conf or {}, overrides, default="default", what="refine")
     base["iterations"] = int(base["iterations"])
+    base["min_agreeing"] = int(base["min_agreeing"])
     base["n_points"] = int(base["n_points"])
     base["symmetry_steps"] = int(base["symmetry_steps"])
-    for k in ("loss_threshold_px", "unmatched_score_factor", "unmatched_dedup_mm", "nms_mm", "exclusion_frac"):
+    for k in ("loss_threshold_px", "nms_mm", "exclusion_frac", "explained_frac"):
         base[k] = float(base[k])
-    base["keep_unmatched"] = bool(base["keep_unmatched"])
+    if base["output"] not in OUTPUTS:
+        raise CosyError(f"refine output {base['output']!r} is not one of {', '.join(OUTPUTS)}")
     if base["iterations"] < 1 or base["n_points"] < 3 or base["symmetry_steps"] < 1 or base["loss_threshold_px"] <= 0 \
-            or base["nms_mm"] < 0 or base["exclusion_frac"] < 0 or base["unmatched_dedup_mm"] < 0 or base["unmatched_score_factor"] < 0:
+            or base["nms_mm"] < 0 or base["exclusion_frac"] < 0 or base["explained_frac"] < 0 or base["min_agreeing"] < 0:
         raise CosyError("refine settings out of range (iterations >= 1, n_points >= 3, loss threshold > 0, "
                         "distances >= 0)")
     return base
+
+
+OUTPUTS = ("scene+candidates", "scene")
+
+
+def _legacy_keys(conf):
+    """``keep_unmatched`` (before issue 16) is ``output``: true -> scene+candidates, false -> scene."""
+    if not isinstance(conf, dict) or "keep_unmatched" not in conf:
+        return conf
+    conf = dict(conf)
+    keep = conf.pop("keep_unmatched")
+    if keep is not None:
+        conf.setdefault("output", "scene+candidates" if keep not in (False, "false", "False", 0, "0") else "scene")
+    for k in ("unmatched_score_factor", "unmatched_dedup_mm"):
+        conf.pop(k, None)
+    return conf
+
+
+def refined_score(s):
+    """Score of a refined prediction: 1 + the object's score clipped to [0, 1] (in [1, 2])."""
+    return 1.0 + np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
+
+
+def fallback_score(s):
+    """Score of a single-view candidate no refined object explains: half its score clipped to
+    [0, 1] (in [0, 0.5]): strictly below every refined prediction, in the candidates' order."""
+    return 0.5 * np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -135,7 +183,8 @@ def read_match_dir(matches: str | Path) -> tuple[dict, bop.PoseResults]:
 
 
 def label_geometry(ds: BopDataset, obj_id: int, n_points: int, symmetry_steps: int) -> ba.LabelGeometry:
-    """Model points (farthest-point samples of the surface) and symmetries of one object label."""
+    """Residual points (the 8 corners of the bounding box of ``n_points`` surface samples, as the
+    original; rods add the samples) and symmetries of one object label."""
     from .match_stage import model_points
 
     info = ds.models_info()[int(obj_id)]
@@ -213,7 +262,8 @@ def single_view_group(g: dict, cands: bop.PoseResults, T_world_cam: np.ndarray, 
              "n_candidates": len(objects_out), "n_unused_candidates": len(unused), "time_s": round(dt, 6)}
     return {
         "scene_id": s, "group_id": int(g["group_id"]), "gauge_im_id": v,
-        "cameras": [{"im_id": v, "T_world_cam": _mat(T_world_cam)}], "unplaced_im_ids": [], "objects": objects_out,
+        "cameras": [{"im_id": v, "T_world_cam": _mat(T_world_cam), "placed_by": "single view"}], "unplaced_im_ids": [],
+        "placed_by": {str(v): "single view"}, "objects": objects_out,
         "stats": stats, "single_view": True, "note": SINGLE_VIEW_NOTE,
         "_pred": pred, "_unused": sorted(set(unused)), "_time": dt,
     }
@@ -246,15 +296,17 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
             raise CosyError("match ran with --known-cameras but the camera pose (cam_R_w2c, cam_t_w2c) is missing",
                             path=ds.scene_file(s, "scene_camera"), where=f"image {no_pose[0]}")
         placed = {i: invert(cams[i].T_cam_world) for i in im_ids}
+        placed_by = {i: "known" for i in im_ids}
         unplaced: list[int] = []
         gauge = None
     else:
-        pairs = [p for p in g["view_pairs"] if p.get("linked")]
-        pair_poses = {(int(p["im_id_a"]), int(p["im_id_b"])): np.asarray(p["T_cam_a_cam_b"], dtype=np.float64)
-                      for p in pairs}
-        inliers = {(int(p["im_id_a"]), int(p["im_id_b"])): float(p["n_inliers"]) for p in pairs}
-        placed, unplaced = ba.initialise_cameras(im_ids, pair_poses, inliers)
-        gauge = next(iter(placed))
+        c_obj = cands.table["obj_id"].to_numpy()
+        links = [placement.Link(int(p["im_id_a"]), int(p["im_id_b"]), np.asarray(p["T_cam_a_cam_b"], dtype=np.float64),
+                                int(p["n_inliers"]), p.get("link", "ransac"),
+                                [int(c_obj[int(e[0])]) for e in p.get("associations", [])])
+                 for p in g["view_pairs"] if p.get("linked")]
+        placed, placed_by, _, gauge = placement.place_cameras(im_ids, links)
+        unplaced = [v for v in im_ids if v not in placed]
     views = list(placed)
     vidx = {v: k for k, v in enumerate(views)}
     tab = cands.table
@@ -300,6 +352,21 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         o_ids = np.array([int(o["obj_id"]) for o in objs])
         keep, into = _nms(T_world_obj, o_ids, n_c, score, conf["nms_mm"],
                           np.array([ds.models_info()[int(o)].diameter for o in o_ids]), conf["exclusion_frac"])
+        # support: a candidate agrees with the refined scene when its mean reprojection error is
+        # under half the loss threshold; an object needs agreeing candidates in min_agreeing views
+        # (else its candidates were a consistent mistake, or the cameras are wrong: it is dropped
+        # and its candidates stay single-view estimates), a view at least one (else it gets no
+        # refined predictions: its camera is not supported)
+        agree = np.nan_to_num(res.cand_error_px, nan=np.inf) < 0.5 * conf["loss_threshold_px"]
+        n_unsupported, n_merged, n_overlap = 0, int((~keep & (into >= 0)).sum()), int((into < 0).sum())
+        for k in np.flatnonzero(keep):
+            mk = np.isin(cand_obj, np.flatnonzero(into == k))
+            if len(np.unique(cv[mk & agree])) < conf["min_agreeing"]:
+                keep[k] = False
+                into[into == k] = -1
+                n_unsupported += 1
+        view_ok = np.zeros(len(views), dtype=bool)
+        view_ok[cv[agree & np.isin(cand_obj, np.flatnonzero(keep))]] = True
         for k, o in enumerate(objs):
             if not keep[k]:
                 continue
@@ -318,9 +385,17 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
             "initial_cost_px2": float(res.initial_cost), "final_cost_px2": float(res.final_cost),
             "reprojection_error_px": {str(v): {"initial": _num(res.initial_view_error_px[k]),
                                                "final": _num(res.view_error_px[k])} for k, v in enumerate(views)},
-            "n_merged_objects": int((~keep & (into >= 0)).sum()),
-            "n_dropped_overlapping_objects": int((into < 0).sum()),
+            "n_merged_objects": n_merged,
+            "n_dropped_overlapping_objects": n_overlap,
+            "n_dropped_unsupported_objects": n_unsupported,
         })
+        if not known_cameras and conf["min_agreeing"] > 0:
+            for k, v in enumerate(views):
+                if not view_ok[k]:
+                    placed_by[v] = "unplaced (its candidates disagree with the refined scene)"
+            unplaced = [v for v in im_ids if v not in placed or not view_ok[vidx[v]]]
+            Twc = Twc[view_ok]
+            views = [v for k, v in enumerate(views) if view_ok[k]]
     dt = time.perf_counter() - t0
     stats["time_s"] = round(dt, 6)
     # predictions: every kept object in every placed camera
@@ -332,10 +407,64 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 pred.append((s, v, o["obj_id"], o["score"], T_cam_obj[k, j]))
     return {
         "scene_id": s, "group_id": int(g["group_id"]), "gauge_im_id": gauge,
-        "cameras": [{"im_id": int(v), "T_world_cam": _mat(Twc[k])} for k, v in enumerate(views)],
-        "unplaced_im_ids": [int(v) for v in unplaced], "objects": objects_out, "stats": stats,
+        "cameras": [{"im_id": int(v), "T_world_cam": _mat(Twc[k]), "placed_by": placed_by[v]}
+                    for k, v in enumerate(views)],
+        "unplaced_im_ids": [int(v) for v in unplaced], "placed_by": {str(v): placed_by[v] for v in im_ids},
+        "objects": objects_out, "stats": stats,
         "_pred": pred, "_unused": sorted(set(unused)), "_time": dt,
+        "_all_cands": sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]}),
     }
+
+
+def group_predictions(r: dict, cands: bop.PoseResults, diameters: dict, conf: dict, score_min: float = -np.inf
+                      ) -> tuple[list, int]:
+    """Prediction rows (scene_id, im_id, obj_id, score, T_cam_obj) of one refined group and how
+    many of them are single-view fallbacks.
+
+    A single-view group passes its candidates through unchanged. Otherwise: every refined object
+    in every placed view, scored :func:`refined_score`; with ``output`` "scene+candidates" also
+    every candidate of the group (scoring at least match's ``score_min``) that no refined
+    prediction of its label in its image explains (centres closer than ``explained_frac`` x the
+    diameter), scored :func:`fallback_score` -- strictly lower, so that a BOP top-k per image and
+    object takes a single-view estimate only where the scene has none (views that could not be
+    placed keep all their candidates).
+    """
+    if r.get("single_view"):
+        return [tuple(x) for x in r["_pred"]], 0
+    rows = [(s, v, o, float(refined_score(sc)), T) for (s, v, o, sc, T) in r["_pred"]]
+    if conf["output"] != "scene+candidates":
+        return rows, 0
+    tab = cands.table
+    ids = np.array(sorted(r["_all_cands"]), dtype=np.int64)
+    if not len(ids):
+        return rows, 0
+    ims, objs, scores = tab["im_id"].to_numpy()[ids], tab["obj_id"].to_numpy()[ids], tab["score"].to_numpy()[ids]
+    keep = scores >= score_min
+    near: dict = {}
+    for (_, v, o, _, T) in r["_pred"]:
+        near.setdefault((int(v), int(o)), []).append(T[:3, 3])
+    n_fb = 0
+    for c, v, o, sc, k in zip(ids.tolist(), ims.tolist(), objs.tolist(), scores.tolist(), keep.tolist()):
+        if not k:
+            continue
+        t = cands.T_cam_obj[c][:3, 3]
+        centres = near.get((v, o))
+        if centres is not None and np.linalg.norm(np.asarray(centres) - t, axis=1).min() < \
+                conf["explained_frac"] * diameters.get(o, 0.0):
+            continue
+        rows.append((int(r["scene_id"]), v, o, float(fallback_score(sc)), cands.T_cam_obj[c]))
+        n_fb += 1
+    return rows, n_fb
+
+
+def _count_placed_by(results: list) -> dict:
+    """How many views were placed which way ("ransac", "two objects", "one object", ...)."""
+    out: dict = {}
+    for r in results:
+        for text in (r.get("placed_by") or {}).values():
+            k = text.split(" (")[0]
+            out[k] = out.get(k, 0) + 1
+    return out
 
 
 def _mat(T: np.ndarray) -> list:
@@ -417,29 +546,16 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     if bar is not None:
         bar.close()
 
-    # predictions (+ unmatched candidates)
-    rows = []
-    tab = cands.table
+    # predictions: the refined scene (+ the candidates it does not explain)
+    diam = {int(o): float(i.diameter) for o, i in infos.items()}
+    score_min = float((doc.get("conf") or {}).get("score_threshold", -np.inf))
+    rows, n_refined, n_unmatched = [], 0, 0
     for r in results:
-        for (s, v, o, sc, T) in r["_pred"]:
-            rows.append((s, v, o, sc, T, r["_time"]))
-    n_refined = len(rows)
-    n_unmatched = 0
-    if conf["keep_unmatched"]:
-        for r in results:
-            pred_c = {}
-            for (s, v, o, _, T) in r["_pred"]:
-                pred_c.setdefault((v, o), []).append(T[:3, 3])
-            for c in r["_unused"]:
-                v, o = int(tab["im_id"].iat[c]), int(tab["obj_id"].iat[c])
-                T = cands.T_cam_obj[c]
-                near = pred_c.get((v, o))
-                dedup = conf["unmatched_dedup_mm"]
-                if near is not None and np.linalg.norm(np.array(near) - T[:3, 3], axis=1).min() < dedup:
-                    continue
-                rows.append((r["scene_id"], v, o, float(tab["score"].iat[c]) * conf["unmatched_score_factor"], T,
-                             r["_time"]))
-                n_unmatched += 1
+        part, n_fb = group_predictions(r, cands, diam, conf, score_min)
+        rows += [x + (r["_time"],) for x in part]
+        n_refined += len(part) - n_fb
+        n_unmatched += n_fb
+        r["stats"]["n_fallback_candidates"] = n_fb
     rows.sort(key=lambda x: (x[0], x[1], -x[3], x[2]))
     if rows:
         preds = bop.PoseResults.from_arrays([x[0] for x in rows], [x[1] for x in rows], [x[2] for x in rows],
@@ -457,6 +573,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "groups": len(results), "objects": int(sum(len(r["objects"]) for r in results)),
         "views": int(n_views), "views_placed": int(n_placed),
         "predictions": len(preds), "refined_predictions": n_refined, "unmatched_predictions": n_unmatched,
+        "output": conf["output"], "placed_by": _count_placed_by(results),
         "median_reprojection_error_px": float(np.median(finals)) if finals else None,
         "not_converged": int(sum(not r["stats"]["converged"] for r in results)),
         "single_view_groups": int(sum(bool(r.get("single_view")) for r in results)),
@@ -480,7 +597,8 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     med = summary["median_reprojection_error_px"]
     log(f"refine: {summary['groups']} groups, {summary['views_placed']}/{summary['views']} views placed, "
         f"{summary['objects']} objects, {summary['predictions']} predictions"
-        + (f" ({n_unmatched} unmatched candidates kept)" if conf["keep_unmatched"] else "")
+        + (f" ({n_unmatched} single-view candidates no refined object explains, scored below)"
+           if conf["output"] == "scene+candidates" else "")
         + (f"; median reprojection error {med:.2f} px" if med is not None else "")
         + (f"; {summary['single_view_groups']} single-view group(s): candidates passed through"
            if summary["single_view_groups"] else "")
