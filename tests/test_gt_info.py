@@ -6,7 +6,6 @@ Reads ../shared/realdata (or $COSY_REALDATA); the real-data tests skip when it i
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -18,13 +17,11 @@ from cosy_cli.cli.main import cli
 from cosy_cli.dataset_tools import gt_info
 from cosy_cli.io import bop, images
 
-REALDATA = Path(os.environ.get("COSY_REALDATA", Path(__file__).resolve().parents[2] / "shared" / "realdata"))
-LMO = REALDATA / "lmo_dev"
-YCBV = REALDATA / "ycbv_0000"
+from realdata import LMO, YCBV, needs  # noqa: E402
 LMO_SCENES = (2, 5)
 
-needs_lmo = pytest.mark.skipif(not (LMO / "test").is_dir(), reason=f"real data not found: {LMO}")
-needs_ycbv = pytest.mark.skipif(not (YCBV / "train_real").is_dir(), reason=f"real data not found: {YCBV}")
+needs_lmo = needs(LMO / "test")
+needs_ycbv = needs(YCBV / "train_real")
 
 
 def _copy_scenes(src: Path, dst: Path, split: str, scene_ids, drop=("scene_gt_info.json", "mask", "mask_visib")):

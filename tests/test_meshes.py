@@ -14,13 +14,14 @@ from PIL import Image
 
 from cosy_cli.cli.main import cli
 from cosy_cli.errors import CosyError, CosyWarning
+from realdata import LMO, MEGAPOSE, needs
+
 from cosy_cli.objects.database import (MeshFileError, ObjectDatabase, check_mesh_arrays, check_ply_data,
                                        load_mesh)
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "data_samples"
-LMO_MODELS = REPO.parent / "shared" / "realdata" / "lmo_dev" / "models"
-MEGAPOSE = REPO.parent / "shared" / "realdata" / "megapose_examples"
+LMO_MODELS = LMO / "models"
 
 K = np.array([[500.0, 0, 159.5], [0, 500.0, 119.5], [0, 0, 1]])
 # seen from the camera: model x right, model y up (image rows go down), model +z towards the camera
@@ -154,7 +155,7 @@ def test_truncated_ascii_ply(tmp_path):
         load_mesh(p)
 
 
-@pytest.mark.skipif(not LMO_MODELS.is_dir(), reason="../shared/realdata/lmo_dev is absent")
+@needs(LMO_MODELS)
 def test_truncated_lmo_model(tmp_path):
     p = tmp_path / "obj_000005.ply"
     shutil.copy(LMO_MODELS / "obj_000005.ply", p)
@@ -238,7 +239,7 @@ def test_cli_templates_exits_2(broken_samples, tmp_path):
 # --------------------------------------------------------------------------------------------
 # colours and textures
 # --------------------------------------------------------------------------------------------
-@pytest.mark.skipif(not LMO_MODELS.is_dir(), reason="../shared/realdata/lmo_dev is absent")
+@needs(LMO_MODELS)
 def test_vertex_colours_lmo():
     mesh = load_mesh(LMO_MODELS / "obj_000001.ply")
     assert mesh.visual.kind == "vertex"
@@ -303,7 +304,7 @@ def test_missing_texture_one_warning_and_grey(tmp_path, kind):
         assert np.abs(np.subtract(v, grey)).max() <= 1, v
 
 
-@pytest.mark.skipif(not MEGAPOSE.is_dir(), reason="../shared/realdata/megapose_examples is absent")
+@needs(MEGAPOSE)
 def test_hope_textured_mesh_is_not_grey():
     mesh = load_mesh(MEGAPOSE / "mustard" / "meshes" / "mustard" / "obj_000016.ply")
     assert mesh.visual.kind == "texture"

@@ -7,7 +7,6 @@ need it skip when it is absent."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -18,11 +17,9 @@ from click.testing import CliRunner
 from cosy_cli.cli.main import cli
 from cosy_cli.io import bop, images
 
-REALDATA = Path(os.environ.get("COSY_REALDATA", Path(__file__).resolve().parents[2] / "shared" / "realdata"))
-MEGAPOSE = REALDATA / "megapose_examples"
+from realdata import MEGAPOSE, needs  # noqa: E402
 BBQ, MUSTARD = MEGAPOSE / "barbecue-sauce", MEGAPOSE / "mustard"
-needs_megapose = pytest.mark.skipif(not (BBQ.is_dir() and MUSTARD.is_dir()),
-                                    reason=f"real data not found: {MEGAPOSE} (see ../shared/realdata/README.md)")
+needs_megapose = needs(BBQ, MUSTARD)
 
 
 def run(*args) -> tuple[int, str, str]:

@@ -26,10 +26,9 @@ from cosy_cli.errors import CosyError, CosyWarning  # noqa: E402
 from cosy_cli.geometry.rotations import random_rotations  # noqa: E402
 from cosy_cli.io import bop  # noqa: E402
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
-LMO, YCBV = REALDATA / "lmo_dev", REALDATA / "ycbv_0000"
-needs_realdata = pytest.mark.skipif(not (LMO.is_dir() and YCBV.is_dir()),
-                                    reason=f"real data not found: {LMO} and {YCBV} (see ../shared/realdata/README.md)")
+from realdata import LMO, YCBV, needs  # noqa: E402
+
+needs_realdata = needs(LMO, YCBV)
 
 
 def _cosy_warnings(record) -> list[str]:
