@@ -57,8 +57,15 @@ def matching_metrics(match_dir: str | Path, sidecar: pd.DataFrame, ds: BopDatase
     match_dir = Path(match_dir)
     m = pd.read_csv(match_dir / "matches.csv")
     side = sidecar.set_index("cand_id").loc[m["cand_id"]].reset_index()
-    m = m.assign(instance_id=side["instance_id"].to_numpy(), kind=side["kind"].to_numpy())
+    m = m.assign(instance_id=side["instance_id"].to_numpy(), kind=side["kind"].to_numpy(),
+                 gt_obj_id=side["gt_obj_id"].to_numpy())
     kept = m[m["object_id"] >= 0]
+    # labels (label groups, issue 19): the label of each candidate's object against the GT object
+    real = kept[kept["instance_id"] >= 0]
+    lab_col = "object_obj_id" if "object_obj_id" in m else "obj_id"
+    obj_right = real.groupby(["scene_id", "group_id", "object_id"]).apply(
+        lambda g: bool((g[lab_col] == g["gt_obj_id"].mode().iloc[0]).all()), include_groups=False)
+    swapped = m[m["kind"] == "lookalike"]
     objs = kept.groupby(["scene_id", "group_id", "object_id"])["instance_id"].agg(
         lambda s: s.nunique() == 1 and s.iloc[0] >= 0)
     purity = float(objs.mean()) if len(objs) else float("nan")
@@ -90,17 +97,21 @@ def matching_metrics(match_dir: str | Path, sidecar: pd.DataFrame, ds: BopDatase
         "links_over_10deg": float((rot > 10).mean()) if len(rot) else float("nan"),
         "trans_err_median_mm": float(np.median(tr)) if len(tr) else float("nan"),
         "trans_err_max_mm": float(tr.max()) if len(tr) else float("nan"),
+        "objects_label_right": float(obj_right.mean()) if len(obj_right) else float("nan"),
+        "swapped_labels": int(len(swapped)),
+        "swapped_kept": float((swapped["object_id"] >= 0).mean()) if len(swapped) else float("nan"),
+        "swapped_corrected": float((swapped[lab_col] == swapped["gt_obj_id"]).mean()) if len(swapped) else float("nan"),
     }
 
 
 def quality_run(root: Path, split: str, profile: str, seed: int, work: Path, known_cameras: bool = False,
-                conf: str = "paper", **knobs) -> dict:
+                conf: str = "paper", label_groups=None, **knobs) -> dict:
     tag = f"{Path(root).name}_{profile}_{seed}" + "".join(f"_{k}{v}" for k, v in knobs.items())
     cands = work / f"cands_{tag}.csv"
     side = work / f"cands_{tag}_gt.csv"
     synth_candidates.main(root, split, cands, profile=profile, seed=seed, gt_out=side, log=lambda *_: None, **knobs)
-    out = work / f"match_{tag}_{int(known_cameras)}_{conf}"
-    c = match_stage.resolve_conf(conf, known_cameras=known_cameras)
+    out = work / f"match_{tag}_{int(known_cameras)}_{conf}_{label_groups}"
+    c = match_stage.resolve_conf(conf, known_cameras=known_cameras, label_groups=label_groups)
     match_stage.main(c, root, split, cands, out, overwrite=True, log=lambda *_: None, progress=False)
     met = matching_metrics(out, pd.read_csv(side), BopDataset(root, split), c["min_inliers"])
     return met
@@ -176,6 +187,10 @@ def main() -> None:
             met = quality_run(root, "test", profile, 0, work, known_cameras=known, conf=conf, **knobs)
             extra = "".join(f" {k}={v}" for k, v in knobs.items())
             print(f"quality {profile}{extra} known_cameras={int(known)} conf={conf}: {_fmt(met)}")
+        # label groups (issue 19): look-alike swaps 6 <-> 7 in 30 % of their candidates
+        for lg in ("none", "auto"):
+            met = quality_run(root, "test", "realistic", 0, work, label_groups=lg, p_lookalike=0.3)
+            print(f"quality realistic p_lookalike=0.3 label_groups={lg}: {_fmt(met)}")
 
         # ---- speed of one group (latency) and of many groups matched together -------------
         rng = np.random.default_rng(0)
@@ -184,18 +199,26 @@ def main() -> None:
         small_ds = BopDataset(root, "test")
         big_ds = BopDataset(big, "test")
         table = match_stage.load_label_table(small_ds, sorted(small_ds.models_info()))
+        from cosy_cli.multiview import label_groups as label_groups_mod
+
+        table_lg = match_stage.load_label_table(small_ds, sorted(small_ds.models_info()),
+                                                groups=label_groups_mod.resolve("auto", small_ds))
         reps = 30 if args.quick else 200
         with threadpool_limits(1):
-            t46 = []
+            t46, t46_lg = [], []
             for s in small_ds.scene_ids[:5]:
                 v, o, T = synthetic_group(small_ds, s, 4, 6, rng)
                 t46.append(time_group(table, v, o, T, 4, reps))
+                t46_lg.append(time_group(table_lg, v, o, T, 4, reps))
             v, o, T = synthetic_group(big_ds, 1, 16, 20, rng)
             t1620 = time_group(table, v, o, T, 16, max(5, reps // 10))
             n_big = len(v)
         print(f"speed: one group of 4 views x 6 candidates: {np.median([a for a, _ in t46]) * 1e3:.2f} ms "
               f"(min over repeats, median over 5 scenes; medians over repeats "
               f"{', '.join(f'{b * 1e3:.2f}' for _, b in t46)} ms); paper (GPU): 40 ms")
+        print(f"speed: the same groups with label groups auto ({(table_lg.compat.sum() - len(table_lg)) // 2} grouped "
+              f"label pairs): {np.median([a for a, _ in t46_lg]) * 1e3:.2f} ms (medians over repeats "
+              f"{', '.join(f'{b * 1e3:.2f}' for _, b in t46_lg)} ms)")
         print(f"speed: one group of 16 views x 20 candidates ({n_big} candidates): {t1620[0] * 1e3:.1f} ms "
               f"(min; median {t1620[1] * 1e3:.1f} ms)")
 

@@ -178,12 +178,23 @@ def test_lookalikes_found_and_kept_apart(tables, tmp_path):
     assert set(res.table.obj_id.to_numpy()[swapped.cand_id]) <= {6, 7}
     assert (res.table.obj_id.to_numpy()[swapped.cand_id] != swapped.gt_obj_id.to_numpy()).all()
     out = tmp_path / "m"
-    _match(tables, csv, out)
+    _match(tables, csv, out, label_groups="none")  # the paper: same label only
     m = pd.read_csv(out / "matches.csv").merge(side[["cand_id", "instance_id", "kind"]], on="cand_id")
     kept = m[m.object_id >= 0]
     # an object has one label and one physical instance
     g = kept.groupby(["scene_id", "group_id", "object_id"])
     assert (g.obj_id.nunique() == 1).all() and (g.instance_id.nunique() == 1).all()
+    assert (m.object_obj_id == m.obj_id).all()
+    # label groups (default auto: 6/7 look alike): one physical instance per object, labelled by the vote
+    out2 = tmp_path / "m2"
+    _match(tables, csv, out2)
+    m2 = pd.read_csv(out2 / "matches.csv").merge(side[["cand_id", "instance_id", "kind", "gt_obj_id"]], on="cand_id")
+    kept2 = m2[m2.object_id >= 0]
+    g2 = kept2.groupby(["scene_id", "group_id", "object_id"])
+    assert (g2.instance_id.nunique() == 1).all() and (g2.object_obj_id.nunique() == 1).all()
+    assert (kept2.kind == "lookalike").sum() > 0
+    assert (kept2.object_obj_id == kept2.gt_obj_id).mean() > (kept.obj_id == side.set_index("cand_id").loc[
+        kept.cand_id, "gt_obj_id"].to_numpy()).mean()
 
 
 def _two_views(shared: int, extra_labels=(1, 3, 6)):
@@ -321,7 +332,8 @@ def test_outputs_are_self_describing(tables, tmp_path):
     _match(tables, csv, out, score_threshold=0.5)
     cands = bop.read_results(csv)
     m = pd.read_csv(out / "matches.csv")
-    assert list(m.columns) == ["scene_id", "group_id", "im_id", "obj_id", "score", "cand_id", "object_id"]
+    assert list(m.columns) == ["scene_id", "group_id", "im_id", "obj_id", "score", "cand_id", "object_id",
+                               "object_obj_id"]
     assert (m.cand_id.to_numpy() == np.arange(len(cands))).all()
     assert (m.obj_id.to_numpy() == cands.table.obj_id.to_numpy()).all()
     assert (m.object_id[m.score < 0.5] == -1).all()
@@ -338,7 +350,8 @@ def test_outputs_are_self_describing(tables, tmp_path):
         assert set(g) >= {"scene_id", "group_id", "im_ids", "objects", "view_pairs", "discarded"}
         for o in g["objects"]:
             rows = m.set_index("cand_id").loc[o["cand_ids"]]
-            assert (rows.object_id == o["object_id"]).all() and (rows.obj_id == o["obj_id"]).all()
+            assert (rows.object_id == o["object_id"]).all() and (rows.object_obj_id == o["obj_id"]).all()
+            assert list(rows.obj_id) == o.get("cand_obj_ids", [o["obj_id"]] * len(rows))
             assert list(rows.im_id) == o["im_ids"]
         ids = [c for o in g["objects"] for c in o["cand_ids"]] + g["discarded"]
         assert sorted(ids) == sorted(m[(m.scene_id == g["scene_id"]) & (m.group_id == g["group_id"])].cand_id)

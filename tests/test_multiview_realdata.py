@@ -278,6 +278,12 @@ def test_lmo_multi_view_never_below_single_view(tmp_path):
         assert mv >= sv + gain, (name, sv, mv)
         if name == "3/5":  # the threshold grew with the noise at 1 m
             assert np.median([g["threshold"]["max_mm"] for g in groups["groups"]]) > 40
+        # leftover candidates paired again after the adjustment: reported, each object in 2+ views
+        summary = json.loads((w / "r" / "scene.json").read_text())["summary"]
+        n = sum(g["stats"].get("n_rematched_objects", 0) for g in scene["groups"])
+        assert summary["rematched_objects"] == n
+        re_objs = [o for g in scene["groups"] for o in g["objects"] if o.get("rematched")]
+        assert len(re_objs) == n and all(o["n_candidates"] >= 2 for o in re_objs)
 
 
 def test_cli_settings(tables, tmp_path):
@@ -346,3 +352,48 @@ def test_consistent_mistakes_are_dropped(tables, tmp_path):
     refine_stage.main(refine_stage.resolve_conf(None, min_agreeing=0), tables, "test", m, tmp_path / "bad_r0",
                       overwrite=True, log=quiet, progress=False)
     assert (bop.read_results(tmp_path / "bad_r0" / "predictions.csv").table.score >= 1).sum() == 4 * n_obj
+
+
+def test_leftover_candidates_rematched_with_the_adjusted_cameras():
+    """Two candidates of one object whose depths disagree by 12 % (beyond any inlier
+    threshold) are paired again in 2D with the cameras: their triangulated object lies within a
+    few mm of the truth; a false candidate of the same label (random rotation), a pair that
+    overlaps an object of the scene and a pair of the same view are not accepted."""
+    from cosy_cli.multiview import bundle_adjustment as ba
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(64, 3)) * np.array([50.0, 35.0, 25.0])
+    geo = [ba.LabelGeometry.create(X - X.mean(0))]
+    Tcw, Two = _scene(n_views=3, n_obj=2, seed=4)
+    Twc = invert(Tcw)
+    K = np.array([[572.0, 0, 320], [0, 573.0, 240], [0, 0, 1]])
+    Ks = np.stack([K] * 3)
+    T0 = Tcw[0] @ Two[0]
+    T1 = Tcw[1] @ Two[0]
+    T0[:3, 3] *= 1.06
+    T1[:3, 3] *= 0.94
+    fp = make_pose(random_rotations(1, rng)[0], T1[:3, 3] * 1.0)
+    conf = refine_stage.resolve_conf(None)
+    lv, ll = np.array([0, 1, 2]), np.zeros(3, dtype=int)
+    out = refine_stage.rematch_leftovers(Twc, Ks, lv, ll, np.stack([T0, T1, fp]), geo, conf,
+                                         np.zeros((0, 4, 4)), np.zeros(0), np.array([120.0]))
+    assert len(out) == 1
+    members, T, err = out[0]
+    assert sorted(members) == [0, 1] and err < 10.0  # the two sizes differ by 12 %
+    assert np.linalg.norm(T[:3, 3] - Two[0][:3, 3]) < 10.0  # the candidates are 60 mm off in depth
+    # the third view's candidate at the right pose joins the object
+    T2 = Tcw[2] @ Two[0]
+    T2[:3, 3] *= 1.03
+    out = refine_stage.rematch_leftovers(Twc, Ks, lv, ll, np.stack([T0, T1, T2]), geo, conf,
+                                         np.zeros((0, 4, 4)), np.zeros(0), np.array([120.0]))
+    assert len(out) == 1 and sorted(out[0][0]) == [0, 1, 2]
+    # an object of the scene already there: nothing new
+    out = refine_stage.rematch_leftovers(Twc, Ks, lv[:2], ll[:2], np.stack([T0, T1]), geo, conf,
+                                         Two[:1], np.array([120.0]), np.array([120.0]))
+    assert out == []
+    # same view, or the false candidate with a good one: nothing
+    assert refine_stage.rematch_leftovers(Twc, Ks, np.array([0, 0]), ll[:2], np.stack([T0, T0]), geo, conf) == []
+    assert refine_stage.rematch_leftovers(Twc, Ks, np.array([0, 1]), ll[:2], np.stack([T0, fp]), geo, conf,
+                                          None, None, np.array([120.0])) == []
+    # off: the stage setting
+    assert refine_stage.resolve_conf(None, rematch="false")["rematch"] is False

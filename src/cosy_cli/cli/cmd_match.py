@@ -52,11 +52,18 @@ from .common import dataset_options, user_errors
 @click.option("--refit/--no-refit", default=None,
               help="Least-squares refit of each view pair's pose on its inliers [on].")
 @click.option("--seed", type=int, default=None, help="Seed of the RANSAC sampling [0].")
+@click.option("--label-groups", "label_groups", default=None, metavar="auto|none|A:B,C:D",
+              help="Labels whose candidates may be matched together, the object taking the label with most "
+                   "evidence (score x fit): auto = look-alike models (chamfer <= 2 % of the diameter), none = "
+                   "same label only (the paper), or groups of obj_ids like 6:7,5:8 [auto; paper-norefit: none].")
+@click.option("--cross-label-hypotheses/--no-cross-label-hypotheses", default=None,
+              help="Let candidate pairs of grouped labels make RANSAC hypotheses too (default: view-pair poses "
+                   "and links from same-label pairs as in the paper, grouped labels only add associations) [off].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, views_per_group, known_cameras: bool,
           threshold_mm, threshold_rel, adaptive_k, weak_links, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
-          overwrite: bool) -> None:
+          label_groups, cross_label_hypotheses, overwrite: bool) -> None:
     """Match object candidates across views (CosyPose stage 2): RANSAC per view pair, scene graph.
 
     Writes OUT atomically; skips when OUT is complete (unless --overwrite). Lengths in mm.
@@ -69,7 +76,8 @@ def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, vie
                                  weak_links=weak_links, ransac_iterations=ransac_iterations,
                                  ransac_confidence=ransac_confidence,
                                  min_inliers=min_inliers, score_threshold=score_threshold,
-                                 symmetry_steps=symmetry_steps, refit=refit, seed=seed)
+                                 symmetry_steps=symmetry_steps, refit=refit, seed=seed, label_groups=label_groups,
+                                 cross_label_hypotheses=cross_label_hypotheses)
     match_stage.main(c, dataset, split, candidates, out, overwrite=overwrite, log=click.echo)
 
 

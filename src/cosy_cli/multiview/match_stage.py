@@ -5,10 +5,12 @@ and candidates as a BOP results CSV (pose of the model in the camera, mm). RGB i
 read. Output folder (built atomically: an interrupted run leaves nothing under ``out``):
 
 ``matches.csv``
-    ``scene_id,group_id,im_id,obj_id,score,cand_id,object_id``: one row per input candidate, in
-    input order; ``cand_id`` = 0-based data row of the candidates CSV; ``object_id`` = the
-    physical object within its group (>= 0) or -1 when discarded (no match in another view,
-    or a score under ``score_threshold``).
+    ``scene_id,group_id,im_id,obj_id,score,cand_id,object_id,object_obj_id``: one row per input
+    candidate, in input order; ``cand_id`` = 0-based data row of the candidates CSV; ``object_id``
+    = the physical object within its group (>= 0) or -1 when discarded (no match in another view,
+    or a score under ``score_threshold``); ``object_obj_id`` = the label of its object (the vote
+    of its members when label groups join candidates of different labels; the candidate's own
+    ``obj_id`` when discarded).
 ``view_pairs.csv``
     ``scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t``: one row per pair of views of a group
     (im_id_a < im_id_b) with ``T_cam_a_cam_b`` (maps points of camera b into camera a; R
@@ -19,10 +21,13 @@ read. Output folder (built atomically: an interrupted run leaves nothing under `
 ``groups.json``
     Self-describing record for ``cosy refine``: version, conf, dataset, split, candidates path,
     known_cameras, and per group its scene, image ids, objects (obj_id, member cand_ids and
-    their im_ids), discarded cand_ids, view pairs (with their associations, ``link``: "ransac",
-    "two objects", "one object" or "none", and ``threshold_mm``: the inlier threshold used),
+    their im_ids; with members of other labels also ``cand_obj_ids``, ``votes`` {obj_id: sum of
+    score x fit} and ``vote_only_cand_ids``: members whose pose is not a pose of the object's
+    model, see :mod:`cosy_cli.multiview.label_groups`), discarded cand_ids, view pairs (with
+    their associations, ``link``: "ransac", "two objects", "one object" or "none", and
+    ``threshold_mm``: the inlier threshold used),
     ``threshold`` (the rule, the estimated relative noise ``residual_scale``, min/max mm) and
-    timing.
+    timing; ``label_groups``: the setting, the groups and the model fits behind them.
 ``candidates.csv``
     A copy of the input candidates (same rows, same order: cand_id = row).
 ``manifest.json``
@@ -52,6 +57,7 @@ from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from ..geometry.sampling import farthest_point_subset
+from . import label_groups
 from .matching import LINK_NAMES, GroupResult, LabelTable, MatchParams, match_groups
 
 FORMAT_VERSION = 1
@@ -83,11 +89,18 @@ CONFS: dict[str, dict] = {
         "threshold_rel": 0.10,
         "adaptive_k": 3.0,
         "weak_links": True,
+        # beyond the paper (issue 19): candidates of look-alike labels may be associated, the object
+        # takes the label with most evidence ("auto": look-alike models; "none": same label only;
+        # or groups like "6:7,5:8"; see cosy_cli.multiview.label_groups)
+        "label_groups": "auto",
+        # False: view-pair poses and links from same-label pairs (as the paper), grouped labels
+        # only add associations under them; True: grouped labels' pairs make hypotheses too
+        "cross_label_hypotheses": False,
     },
 }
-# As published: one candidate pair's hypothesis (no refit), the fixed 2 cm, >= 3 inliers
+# As published: one candidate pair's hypothesis (no refit), the fixed 2 cm, >= 3 inliers, same label
 CONFS["paper-norefit"] = {**CONFS["paper"], "refit": False, "threshold_rel": 0.0, "adaptive_k": 0.0,
-                          "weak_links": False}
+                          "weak_links": False, "label_groups": "none"}
 CONFS["paper-fixed"] = {**CONFS["paper"], "threshold_rel": 0.0, "adaptive_k": 0.0, "weak_links": False}
 
 
@@ -117,6 +130,8 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     base["score_threshold"] = float(base["score_threshold"])
     base["refit"] = bool(base["refit"])
     base["known_cameras"] = bool(base["known_cameras"])
+    base["label_groups"] = label_groups.normalize_setting(base["label_groups"])
+    base["cross_label_hypotheses"] = bool(base["cross_label_hypotheses"])
     return base
 
 
@@ -273,8 +288,10 @@ def model_points(path: str | Path, n_points: int, seed: int = 0) -> np.ndarray:
     return X[np.arange(n_points) % len(X)]  # fewer points (a small point cloud): cycled, N for every label
 
 
-def load_label_table(ds: BopDataset, obj_ids, n_points: int = 32, symmetry_steps: int = 64) -> LabelTable:
-    """LabelTable of ``obj_ids`` from the dataset's models folder (points and symmetry sets)."""
+def load_label_table(ds: BopDataset, obj_ids, n_points: int = 32, symmetry_steps: int = 64,
+                     groups: "label_groups.Resolved | None" = None) -> LabelTable:
+    """LabelTable of ``obj_ids`` from the dataset's models folder (points and symmetry sets);
+    with ``groups`` (label groups resolved on ``ds``) the labels that may be associated."""
     infos = ds.models_info()
     pts, syms, align, cont, axes = [], [], [], [], []
     for o in obj_ids:
@@ -292,7 +309,9 @@ def load_label_table(ds: BopDataset, obj_ids, n_points: int = 32, symmetry_steps
         else:
             align.append(X)
             axes.append(None)
-    return LabelTable(obj_ids, pts, syms, align_points=align, continuous=cont, axes=axes)
+    compat, model_align = label_groups.compat_arrays(groups, obj_ids) if groups is not None else (None, None)
+    return LabelTable(obj_ids, pts, syms, align_points=align, continuous=cont, axes=axes, compat=compat,
+                      model_align=model_align)
 
 
 # --------------------------------------------------------------------------------------------
@@ -386,8 +405,17 @@ def _fmt_pose(T: np.ndarray) -> tuple[str, str]:
     return " ".join(f"{v:.9g}" for v in T[:3, :3].reshape(-1)), " ".join(f"{v:.6f}" for v in T[:3, 3])
 
 
+def _vote(g: dict, res: GroupResult, objs: np.ndarray, score: np.ndarray) -> None:
+    """The label of each object of a matched group (``g["labels"]``, ``g["votes"]``): the vote of
+    its members, score x geometric fit (a single view: each candidate its own label)."""
+    idx = g["cand_idx"]
+    fit = res.cand_fit if res.cand_fit is not None else np.ones(len(idx))
+    g["labels"], g["votes"] = label_groups.vote_labels(res.object_id, objs[idx], score[idx], fit)
+
+
 def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = True):
-    """Match every group; returns (groups (list of dicts with results), object_id (n,), group_of (n,))."""
+    """Match every group; returns (groups (list of dicts with results, object labels and votes),
+    object_id (n,), group_of (n,), the resolved label groups)."""
     from threadpoolctl import threadpool_limits
 
     tab = cands.table
@@ -400,11 +428,13 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     group_of = np.full(n, -1, dtype=np.int64)
     groups = make_groups(ds, sorted(int(s) for s in np.unique(scenes)), conf["views_per_group"])
     used = sorted(int(o) for o in np.unique(objs))
-    table = load_label_table(ds, used, conf["n_points"], conf["symmetry_steps"]) if used else None
+    resolved = label_groups.resolve(conf["label_groups"], ds)
+    table = load_label_table(ds, used, conf["n_points"], conf["symmetry_steps"], resolved) if used else None
     params = MatchParams(threshold_mm=conf["threshold_mm"], ransac_iterations=conf["ransac_iterations"],
                          min_inliers=conf["min_inliers"], refit=conf["refit"], sym_candidates=conf["sym_candidates"],
                          ransac_confidence=conf["ransac_confidence"], threshold_rel=conf["threshold_rel"],
-                         adaptive_k=conf["adaptive_k"], weak_links=conf["weak_links"])
+                         adaptive_k=conf["adaptive_k"], weak_links=conf["weak_links"],
+                         cross_label_hypotheses=conf["cross_label_hypotheses"])
     lab_all = table.index_of(objs) if used else np.zeros(0, dtype=np.int64)
     # candidates of each (scene, im)
     key = scenes * (1 << 32) + ims
@@ -424,6 +454,7 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
         g = groups[k]
         n_k = len(g["cand_idx"])
         g["result"] = single_view_result(n_k)
+        _vote(g, g["result"], objs, score)
         g["time_s"] = 0.0
         object_id[g["cand_idx"]] = g["result"].object_id
         del g["view"], g["T_cw"]
@@ -439,6 +470,7 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
         dt = (time.perf_counter() - t0) / len(batch)
         for k, res in zip(batch, results):
             groups[k]["result"] = res
+            _vote(groups[k], res, objs, score)
             groups[k]["time_s"] = dt
             object_id[groups[k]["cand_idx"]] = res.object_id
             del groups[k]["view"], groups[k]["T_cw"]
@@ -472,18 +504,25 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
         flush()
     if bar is not None:
         bar.close()
-    return groups, object_id, group_of
+    return groups, object_id, group_of, resolved
 
 
 def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands: bop.PoseResults, groups,
-                   object_id, group_of, summary: dict) -> None:
+                   object_id, group_of, summary: dict, resolved: "label_groups.Resolved | None" = None) -> None:
     tab = cands.table
     ims = tab["im_id"].to_numpy()
-    lines = ["scene_id,group_id,im_id,obj_id,score,cand_id,object_id"]
+    lines = ["scene_id,group_id,im_id,obj_id,score,cand_id,object_id,object_obj_id"]
     sc, ob, scr = tab["scene_id"].to_numpy(), tab["obj_id"].to_numpy(), tab["score"].to_numpy()
     gid = [groups[g]["group_id"] if g >= 0 else -1 for g in group_of]
+    obj_label = ob.copy()  # the label of each candidate's object (its own when discarded)
+    for g in groups:
+        idx, oid = g["cand_idx"], g["result"].object_id
+        inside = oid >= 0
+        obj_label[idx[inside]] = g["labels"][oid[inside]]
+    agree = {(f.a, f.b) for f in (resolved.pairs if resolved is not None else []) if f.frames_agree}
+    n_relabelled = 0
     for i in range(len(tab)):
-        lines.append(f"{sc[i]},{gid[i]},{ims[i]},{ob[i]},{scr[i]:.9g},{i},{object_id[i]}")
+        lines.append(f"{sc[i]},{gid[i]},{ims[i]},{ob[i]},{scr[i]:.9g},{i},{object_id[i]},{obj_label[i]}")
     # plain writes: the whole folder is renamed into place at the end (atomic_dir)
     (tmp / "matches.csv").write_text("\n".join(lines) + "\n")
     vlines = ["scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t"]
@@ -508,8 +547,17 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
         objects = []
         for o in range(res.n_objects):
             members = idx[res.object_id == o]
-            objects.append({"object_id": o, "obj_id": int(ob[members[0]]),
-                            "cand_ids": [int(c) for c in members], "im_ids": [int(ims[c]) for c in members]})
+            lab = int(g["labels"][o])
+            entry_o = {"object_id": o, "obj_id": lab,
+                       "cand_ids": [int(c) for c in members], "im_ids": [int(ims[c]) for c in members]}
+            own = ob[members]
+            if np.any(own != lab):  # members of other labels (label groups): the vote, and their use
+                n_relabelled += int(np.sum(own != lab))
+                entry_o["cand_obj_ids"] = [int(x) for x in own]
+                entry_o["votes"] = {str(k): round(v, 6) for k, v in sorted(g["votes"][o].items())}
+                entry_o["vote_only_cand_ids"] = [int(c) for c, x in zip(members, own)
+                                                 if x != lab and (min(x, lab), max(x, lab)) not in agree]
+            objects.append(entry_o)
         members_all = np.flatnonzero(group_of == gi)
         entry = {
             "scene_id": g["scene_id"], "group_id": g["group_id"], "im_ids": im_ids,
@@ -532,7 +580,8 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
         "candidates_copy": "candidates.csv", "known_cameras": conf["known_cameras"],
         "units": {"t": "mm", "poses": "T_cam_a_cam_b maps points of camera b into camera a"},
         "association_fields": ["cand_id_a", "cand_id_b", "D_l_mm", "kept_in_graph"],
-        "summary": summary, "groups": out_groups,
+        "label_groups": (resolved.record() if resolved is not None else None),
+        "summary": {**summary, "relabelled_candidates": n_relabelled}, "groups": out_groups,
     }
     (tmp / "groups.json").write_text(json.dumps(doc, separators=(",", ":")) + "\n")  # compact: C encoder
     manifest.write_folder_manifest(tmp, "cosy match", OUTPUT_FILES)  # checked by cosy refine
@@ -553,7 +602,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
     cands = bop.read_results(csv_path)
     _check_inputs(ds, cands, csv_path, conf["known_cameras"])
     t0 = time.perf_counter()
-    groups, object_id, group_of = run(conf, ds, cands, progress=progress)
+    label_groups.check_obj_ids(conf["label_groups"], ds.models_info())
+    groups, object_id, group_of, resolved = run(conf, ds, cands, progress=progress)
     t_match = time.perf_counter() - t0
     times = np.array([g["time_s"] for g in groups]) if groups else np.zeros(0)
     n_obj = sum(g["result"].n_objects for g in groups)
@@ -568,7 +618,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
         "single_view_groups": int(sum(len(g["im_ids"]) == 1 for g in groups)),
     }
     with atomic.atomic_dir(out, overwrite=overwrite) as tmp:
-        _write_outputs(tmp, conf, ds, csv_path, cands, groups, object_id, group_of, summary)
+        _write_outputs(tmp, conf, ds, csv_path, cands, groups, object_id, group_of, summary, resolved)
     log(f"match: {summary['groups']} groups, {summary['candidates']} candidates: {kept} kept in {n_obj} objects, "
         f"{summary['discarded']} discarded; {summary['linked_view_pairs']}/{summary['view_pairs']} view pairs linked; "
         f"{summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "

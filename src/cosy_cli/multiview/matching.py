@@ -109,6 +109,19 @@ For real data (issue 16; all off with ``threshold_rel = adaptive_k = 0``, ``weak
   seen exactly once in both views is left unassociated (that would contradict the pose). See
   :meth:`_Group.weak_links`; ``GroupResult.link_kind`` says how each pair was linked.
 
+Label groups (issue 19, beyond the paper; off with the default LabelTable)
+-------------------------------------------------------------------------
+``LabelTable.compat[a, b]``: candidates of labels a != b may be associated (look-alikes that a
+detector confuses; see :mod:`cosy_cli.multiview.label_groups`). A candidate pair (i in view a,
+j in view b) of labels (l_i, l_j) is measured as a pair of label l_i: j's pose is turned into a
+pose of l_i's model, ``T_j inv(model_align[l_i, l_j])`` (the identity where the models' frames
+agree), then D_{l_i} with l_i's points and symmetries. By default (``cross_label_hypotheses``
+False) the view pairs' poses, thresholds and links are those of the same-label matching (exactly
+the paper's), and the grouped labels' pairs only add associations of the linked pairs under those
+poses; with True they also make and score hypotheses. :class:`GroupResult` carries each
+candidate's geometric fit with its object (``cand_fit``) for the label vote. Without groups the
+results are bit-identical to same-label matching.
+
 Units: mm. Poses are 4x4 ``T_a_b`` matrices (maps frame b into frame a).
 """
 
@@ -138,6 +151,10 @@ class MatchParams:
     adaptive_k: float = 0.0  # final: clip(adaptive_k x robust residual scale of the group, threshold_mm, ceiling)
     # views linked by 1-2 objects (fewer than min_inliers), with stricter checks (see weak links)
     weak_links: bool = False
+    # label groups (LabelTable.compat): False = view-pair hypotheses, thresholds and links from
+    # same-label pairs as in the paper, pairs of grouped labels only add associations under them;
+    # True = pairs of grouped labels also make and score hypotheses
+    cross_label_hypotheses: bool = False
 
 
 class LabelTable:
@@ -155,11 +172,19 @@ class LabelTable:
     """
 
     def __init__(self, obj_ids, points, symmetries, align_points=None, continuous=None, axes=None,
-                 n_clusters: int = 8):
+                 n_clusters: int = 8, compat=None, model_align=None):
         self.obj_ids = np.asarray(obj_ids, dtype=np.int64)
         L = len(self.obj_ids)
         if L == 0:
             raise ValueError("LabelTable needs at least one label")
+        # label groups (beyond the paper): compat[a, b] when candidates of labels a, b may be
+        # associated (the diagonal: same label); model_align[a, b] = T_a_b maps model b's frame
+        # into model a's (see cosy_cli.multiview.label_groups)
+        self.compat = np.eye(L, dtype=bool) if compat is None else np.asarray(compat, dtype=bool).reshape(L, L)
+        self.compat = self.compat | self.compat.T | np.eye(L, dtype=bool)
+        self.model_align = np.tile(np.eye(4), (L, L, 1, 1)) if model_align is None else \
+            np.asarray(model_align, dtype=np.float64).reshape(L, L, 4, 4)
+        self.cross = bool((self.compat & ~np.eye(L, dtype=bool)).any())
         X = np.stack([np.asarray(p, dtype=np.float64) for p in points])  # (L, N, 3)
         if X.ndim != 3 or X.shape[0] != L or X.shape[2] != 3:
             raise ValueError(f"points: expected {L} arrays of shape (N, 3), got {X.shape}")
@@ -397,6 +422,10 @@ class GroupResult:
     threshold_mm: np.ndarray | None = None  # (P,) the inlier threshold used for each view pair, mm
     link_kind: np.ndarray | None = None  # (P,) LINK_* code: how the pair is linked (LINK_NONE: not)
     residual_scale: float = float("nan")  # robust scale of the inlier distances / distance (NaN: not estimated)
+    # (n,) geometric fit of each candidate with its object: exp(-(D / sigma)^2), D = mean D_l of its
+    # kept associations, sigma = half their inlier threshold (0 for discarded candidates); the
+    # weight of its label in the object's vote (with its score, see label_groups.vote_labels)
+    cand_fit: np.ndarray | None = None
 
     @property
     def n_objects(self) -> int:
@@ -546,10 +575,23 @@ class _Group:
         pI, pJ = o[first], o[second]
         ok = self.view[pI] < self.view[pJ]
         pI, pJ = pI[ok], pJ[ok]
+        if table.cross and self.n:  # label groups: pairs of compatible different labels too
+            xI, xJ = self._cross_pairs(g)
+            pI, pJ = np.concatenate([pI, xI]), np.concatenate([pJ, xJ])
         pvp = vp_index(self.view[pI], self.view[pJ])
         o = np.lexsort((pJ, pI, pvp))
         self.pI, self.pJ, self.pvp = pI[o], pJ[o], pvp[o]
         self.plab = self.lab[self.pI]
+        # the partner's pose as a pose of the first candidate's model (T_cam_b inv(T_a_b) for
+        # labels a != b of a group; the candidate's own pose otherwise), its inverse and centre
+        self.pTJ, self.pTJinv, self.pccJ = self.T[self.pJ], self.Tinv[self.pJ], self.cc[self.pJ]
+        self.pcross = self.lab[self.pJ] != self.plab
+        if self.pcross.any():
+            x = np.flatnonzero(self.pcross)
+            A_ba = table.model_align[self.lab[self.pJ[x]], self.plab[x]]  # T_b_a = inv(T_a_b)
+            self.pTJ[x] = self.T[self.pJ[x]] @ A_ba
+            self.pTJinv[x] = invert(self.pTJ[x])
+            self.pccJ[x] = _apply(self.pTJ[x], table.centers[self.plab[x]])
         self.m = np.bincount(self.pvp, minlength=self.nvp)
         self.off = np.cumsum(self.m) - self.m
         # distance of each view's objects to its camera (median over its candidates, mm) and of
@@ -559,6 +601,29 @@ class _Group:
         self.z_vp = 0.5 * (zv[self.pair_views[:, 0]] + zv[self.pair_views[:, 1]]) if self.nvp else np.zeros(0)
         self.thr_ceiling = np.maximum(float(params.threshold_mm), float(params.threshold_rel) * self.z_vp)
         self.set_thresholds(self.thr_ceiling)
+
+    def _cross_pairs(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate pairs (i, j) of different but compatible labels (label groups), same group,
+        view_i < view_j."""
+        tab = self.table
+        part = (tab.compat & ~np.eye(len(tab), dtype=bool)).any(1)
+        c = np.flatnonzero(part[self.lab])
+        if len(c) < 2:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        o = c[np.argsort(g[c], kind="stable")]
+        key = g[o]
+        bstart = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        bsize = np.diff(np.r_[bstart, len(o)])
+        pos = np.arange(len(o)) - np.repeat(bstart, bsize)
+        cnt = np.repeat(bsize, bsize) - 1 - pos
+        first = np.repeat(np.arange(len(o)), cnt)
+        second = first + 1 + _ragged_arange(cnt)
+        i, j = o[first], o[second]
+        li, lj = self.lab[i], self.lab[j]
+        ok = (li != lj) & tab.compat[li, lj] & (self.view[i] != self.view[j])
+        i, j = i[ok], j[ok]
+        swap = self.view[i] > self.view[j]
+        return np.where(swap, j, i), np.where(swap, i, j)
 
     def set_thresholds(self, thr_vp: np.ndarray) -> None:
         """The inlier threshold on D_l of every view pair (nvp,) mm."""
@@ -625,7 +690,7 @@ class _Group:
             hvp = pvp[hp]
             n_hyp += np.bincount(hvp, minlength=nvp)
             if len(hp):
-                T_h = self.T[self.pI[hp]] @ tab.S[plab[hp], hs] @ self.Tinv[self.pJ[hp]]
+                T_h = self.T[self.pI[hp]] @ tab.S[plab[hp], hs] @ self.pTJinv[hp]
                 best, bc, br, ev = self.score(hvp, T_h, best_cnt, best_res)
                 upd = np.flatnonzero(best >= 0)
                 best_T[upd], best_cnt[upd], best_res[upd] = T_h[best[upd]], bc[upd], br[upd]
@@ -672,12 +737,12 @@ class _Group:
         l1, l2 = plab[c1], plab[c2]
         thr = self.thr_vp[self.pvp[c1]]  # the view pair's inlier threshold, per combination
         da = _norm3(self.cc[al] - self.cc[ga])
-        db = _norm3(self.cc[be] - self.cc[de])
+        db = _norm3(self.pccJ[c1] - self.pccJ[c2])
         ok &= np.abs(da - db) <= thr + self.r[l1] + self.r[l2]
         c1, c2, al, be, ga, de, l1, l2, thr = (x[ok] for x in (c1, c2, al, be, ga, de, l1, l2, thr))
         if len(c1) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        u = _apply(self.Tinv[be], self.cc[de])  # delta's centre in beta's model frame
+        u = _apply(self.pTJinv[c1], self.pccJ[c2])  # delta's centre in beta's model frame
         w = _apply(self.Tinv[al], self.cc[ga])  # gamma's centre in alpha's model frame
         ax = tab.has_axis[l1]
         if ax.any():  # objects with a symmetry axis: height along and distance to the axis are invariant
@@ -733,7 +798,7 @@ class _Group:
         c = rows[ci]
         s = cand_s[ci, cj]
         A = self.Tinv[ga[c]] @ self.T[al[c]]
-        B = self.Tinv[be[c]] @ self.T[de[c]]
+        B = self.pTJinv[c1[c]] @ self.pTJ[c2[c]]
         M = A @ tab.S[l1[c], s] @ B
         D, _ = symmetric_distance_rel(tab, l2[c], M, cap=self.thr_max)
         # per combination (row index c): argmin D over its candidate symmetries; a hypothesis
@@ -757,8 +822,11 @@ class _Group:
         pf = np.repeat(self.off[hvp], cnt) + _ragged_arange(cnt)
         if self.n * H <= 8 * len(hf):  # all centres under all hypotheses in one matmul, then gather
             pred = _transform_many(self.cc, T_ab[:, :3, :3], T_ab[:, :3, 3])[self.pJ[pf], hf]
+            x = np.flatnonzero(self.pcross[pf])
+            if len(x):  # pairs of different labels: the partner's centre as the first's model
+                pred[x] = _apply(T_ab[hf[x]], self.pccJ[pf[x]])
         else:  # many groups matched together: per row
-            pred = _apply(T_ab[hf], self.cc[self.pJ[pf]])  # centre of j under the hypothesis
+            pred = _apply(T_ab[hf], self.pccJ[pf])  # centre of j under the hypothesis
         lab = self.plab[pf]
         poss = _norm3(self.cc[self.pI[pf]] - pred) <= self.thr_vp[self.pvp[pf]] + self.r[lab]
         rh, rp = hf[poss], pf[poss]
@@ -769,7 +837,7 @@ class _Group:
 
     def evaluate(self, rh, rp, T_ab):
         """Exact D_l (and symmetry index) for rows (hypothesis rh, pair rp)."""
-        M = self.Tinv[self.pI[rp]] @ T_ab[rh] @ self.T[self.pJ[rp]]
+        M = self.Tinv[self.pI[rp]] @ T_ab[rh] @ self.pTJ[rp]
         return symmetric_distance_rel(self.table, self.plab[rp], M, cap=self.thr_max)
 
     def counts(self, rh, rp, D, H):
@@ -862,18 +930,19 @@ class _Group:
 
     def associate(self, rp, D, s):
         """One-to-one inlier associations from rows (pair rp, D_l, symmetry index) of one
-        hypothesis per view pair. Returns (i, j, D, s, vp) arrays sorted by view pair then D."""
+        hypothesis per view pair. Returns (i, j, D, s, vp, pair row) arrays sorted by view pair
+        then D."""
         sel = np.flatnonzero(D < self.thr_vp[self.pvp[rp]])
-        i, j, d, ss = self.pI[rp[sel]], self.pJ[rp[sel]], D[sel], s[sel]
+        i, j, d, ss, pr = self.pI[rp[sel]], self.pJ[rp[sel]], D[sel], s[sel], rp[sel]
         vp = self.pvp[rp[sel]]
         o = np.lexsort((j, i, d, vp))
-        i, j, d, ss, vp = i[o], j[o], d[o], ss[o], vp[o]
+        i, j, d, ss, vp, pr = i[o], j[o], d[o], ss[o], vp[o], pr[o]
         _, fi = np.unique(vp * max(self.n, 1) + i, return_index=True)  # closest j of each i
         fi = np.sort(fi)
-        i, j, d, ss, vp = i[fi], j[fi], d[fi], ss[fi], vp[fi]
+        i, j, d, ss, vp, pr = i[fi], j[fi], d[fi], ss[fi], vp[fi], pr[fi]
         _, fj = np.unique(vp * max(self.n, 1) + j, return_index=True)  # closest i of each j
         fj = np.sort(fj)
-        return i[fj], j[fj], d[fj], ss[fj], vp[fj]
+        return i[fj], j[fj], d[fj], ss[fj], vp[fj], pr[fj]
 
     def refit(self, assoc, n_vp):
         """Least-squares T_ab per view pair from its associations.
@@ -885,15 +954,15 @@ class _Group:
         continuous symmetry). Translation: the mean of ``c_a - R c_b`` over the object centres.
         Returns (view pairs refitted (k,), T_ab (k, 4, 4)).
         """
-        i, j, d, ss, vp = assoc
+        i, j, d, ss, vp, pr = assoc
         ok = n_vp[vp] >= max(1, int(self.params.min_inliers))
-        i, j, ss, vp = i[ok], j[ok], ss[ok], vp[ok]
+        i, j, ss, vp, pr = i[ok], j[ok], ss[ok], vp[ok], pr[ok]
         if len(i) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
         tab = self.table
         l = self.lab[i]
         TS = self.T[i] @ tab.S[l, ss]
-        Tj = self.T[j]
+        Tj = self.pTJ[pr]  # j's pose (as a pose of i's model for labels of a group)
         starts = np.flatnonzero(np.r_[True, vp[1:] != vp[:-1]])
         vps = vp[starts]
         # chordal mean of relative rotations (objects without a continuous symmetry)
@@ -939,7 +1008,7 @@ class _Group:
         view pairs with at least ``min_inliers`` of them, of D_l divided by the objects' distance
         to the cameras (a relative error, like the depth error of an RGB method); NaN for a
         group with fewer than 3 such associations. (n_groups,)."""
-        i, j, d, _, vp = assoc
+        i, j, d, _, vp, _ = assoc
         ok = n_vp[vp] >= max(2, int(self.params.min_inliers))
         i, j, d, vp = i[ok], j[ok], d[ok], vp[ok]
         rel = d / np.maximum(0.5 * (self.dist[i] + self.dist[j]), 1e-9)
@@ -965,7 +1034,7 @@ class _Group:
         weak = np.flatnonzero((n_vp >= 1) & (n_vp < mi))
         if not len(weak):
             return link_kind
-        i, j, d, _, vp = assoc
+        i, j, d, _, vp, _ = assoc
         L = len(self.table)
         cnt = np.bincount(self.view * L + self.lab, minlength=self.n_views * L).reshape(self.n_views, L)
         parent = list(range(self.n_views))
@@ -986,7 +1055,7 @@ class _Group:
             labs = self.lab[i[rows]]
             a, b = self.pair_views[p]
             shared = np.flatnonzero((cnt[a] == 1) & (cnt[b] == 1))
-            if np.setdiff1d(shared, labs).size:
+            if np.setdiff1d(shared, np.union1d(labs, self.lab[j[rows]])).size:
                 continue  # a label once in each view, not associated: contradicts the pose
             if len(rows) == 1 and self.table.n_sym[labs[0]] > 1:
                 continue  # one symmetric object does not fix the relative pose
@@ -1051,9 +1120,14 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
         v0 += int(n_views)
     cand_group = np.repeat(np.arange(len(groups)), [len(v) for v in views])
     view = np.concatenate(views) if views else np.zeros(0, np.int64)
-    g = _Group(view, np.concatenate(labs) if labs else np.zeros(0, np.int64),
-               np.concatenate(Ts) if Ts else np.zeros((0, 4, 4)), np.concatenate(gv) if gv else np.zeros(0, np.int64),
-               table, params)
+    g_args = (view, np.concatenate(labs) if labs else np.zeros(0, np.int64),
+              np.concatenate(Ts) if Ts else np.zeros((0, 4, 4)), np.concatenate(gv) if gv else np.zeros(0, np.int64))
+    # label groups: the view pairs' poses, thresholds and links come from same-label pairs (the
+    # paper's matching, unchanged) unless cross_label_hypotheses; pairs of grouped labels then only
+    # add associations under those poses
+    grouped = table.cross and int((table.compat & ~np.eye(len(table), dtype=bool)).any(1)[g_args[1]].sum()) >= 2
+    two_pass = grouped and not params.cross_label_hypotheses
+    g = _Group(*g_args, _same_label_table(table) if two_pass or not grouped else table, params)
     if known:
         Tcw = np.concatenate(Tcws)
         T_ab = Tcw[g.pair_views[:, 0]] @ invert(Tcw[g.pair_views[:, 1]])
@@ -1087,10 +1161,34 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
     elif params.weak_links:
         link_kind = g.weak_links(assoc, n_vp, link_kind)
     linked = link_kind != LINK_NONE
-    ei, ej, ed, _, evp = assoc
+    if two_pass:  # associations of the linked pairs with the grouped labels' pairs too
+        gx = _Group(*g_args, table, params)
+        gx.set_thresholds(g.thr_vp)
+        if known:  # known cameras: every pair with candidate pairs
+            vps = np.flatnonzero(gx.m > 0)
+            assoc = gx.associate_with(vps, T_ab[vps])
+            n_vp = np.bincount(assoc[4], minlength=gx.nvp)
+            link_kind = np.where(n_vp > 0, LINK_KNOWN, LINK_NONE)
+            linked = link_kind != LINK_NONE
+            n_hyp = (gx.m > 0).astype(np.int64)
+        else:
+            vps = np.flatnonzero(linked)
+            assoc = gx.associate_with(vps, T_ab[vps])
+        g = gx
+    ei, ej, ed, _, evp, _ = assoc
     use = linked[evp]
     ei, ej, ed, evp = ei[use], ej[use], ed[use], evp[use]
     comp, kept = _components(g.n, g.view, ei, ej, ed)
+    # geometric fit of each candidate with its object (for the label vote)
+    ke = np.flatnonzero(kept)
+    ends = np.concatenate([ei[ke], ej[ke]])
+    n_e = np.bincount(ends, minlength=g.n)
+    d_sum = np.bincount(ends, weights=np.tile(ed[ke], 2), minlength=g.n)
+    t_sum = np.bincount(ends, weights=np.tile(g.thr_vp[evp[ke]], 2), minlength=g.n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fit = np.where(n_e > 0, np.exp(-(d_sum / np.maximum(0.5 * t_sum, 1e-9)) ** 2), 0.0)
+    fit_in = np.zeros(g.n)
+    fit_in[g.order] = fit
     # back to input order (of the concatenated groups)
     inv = g.order
     comp_in = np.full(g.n, -1, dtype=np.int64)
@@ -1114,9 +1212,19 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
             object_id=ids[inv_c].reshape(-1), pair_views=g.pair_views[sl] - f0, n_inliers=n_vp[sl], T_ab=T_ab[sl],
             linked=linked[sl], n_hypotheses=n_hyp[sl], edges=e_in[sel] - c0, edge_dist=ed[sel],
             edge_pair=evp[sel] - vp0, edge_kept=kept[sel], threshold_mm=g.thr_vp[sl].copy(),
-            link_kind=link_kind[sl].copy(), residual_scale=float(scale[k])))
+            link_kind=link_kind[sl].copy(), residual_scale=float(scale[k]), cand_fit=fit_in[c0:c0 + n_k]))
         c0, vp0, f0 = c0 + n_k, vp0 + n_vp_k, f0 + nv_k
     return results
+
+
+def _same_label_table(table: LabelTable) -> LabelTable:
+    """The table without label groups (a shallow copy: same geometry, same-label pairs only)."""
+    import copy
+
+    t = copy.copy(table)
+    t.compat = np.eye(len(table), dtype=bool)
+    t.cross = False
+    return t
 
 
 def _components(n: int, view: np.ndarray, ei: np.ndarray, ej: np.ndarray, ed: np.ndarray):

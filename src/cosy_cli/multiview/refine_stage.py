@@ -9,6 +9,9 @@ spanning tree (:mod:`cosy_cli.multiview.placement`: RANSAC links first, links th
 two objects only to reach views RANSAC leaves apart), or taken from the dataset with known
 cameras; objects from their most consistent candidate; then cameras and objects are refined
 jointly by the object-level bundle adjustment of :mod:`cosy_cli.multiview.bundle_adjustment`.
+Candidates that matching left apart are then paired again in 2D with the adjusted cameras
+(:func:`rematch_leftovers`, setting ``rematch``): two of one label in two views whose
+triangulated object reprojects onto both become one more object (``"rematched": true``).
 
 Output folder (built atomically):
 
@@ -23,7 +26,8 @@ Output folder (built atomically):
     "ransac (N inliers)", "two objects (obj_id A, B)", "one object (obj_id A)", "known",
     "unplaced" (its candidates are kept as predictions), or "unplaced (its candidates disagree
     with the refined scene)" (after the adjustment none of its candidates agrees with a refined
-    object: see ``min_agreeing``). ``stats``: iterations, converged,
+    object: see ``min_agreeing``). Objects found by :func:`rematch_leftovers` carry
+    ``"rematched": true``. ``stats``: iterations, converged, n_rematched_objects,
     initial and final cost (px^2: mean truncated squared reprojection error), reprojection error
     per view (px, initial and final), candidates used, fallback candidates output, time.
 ``predictions.csv``
@@ -91,6 +95,14 @@ DEFAULT_CONF = {
     # than this fraction of the smaller diameter are one physical object (typically a look-alike
     # whose label was swapped in several views); the weaker one is dropped (0: off).
     "exclusion_frac": 0.5,
+    # candidates that matching left apart, paired again after the adjustment: two leftover
+    # candidates of one label in two placed views whose triangulated object (cameras fixed)
+    # both reproject within rematch_agree_frac x the loss threshold (mean error over the
+    # points), and whose depths it confirms within rematch_depth_frac of theirs, become one more
+    # object of the scene (rematch_leftovers)
+    "rematch": True,
+    "rematch_depth_frac": 0.15,
+    "rematch_agree_frac": 1.0,  # x loss_threshold_px: the agreement test of rematched pairs
 }
 
 
@@ -102,7 +114,9 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     base["min_agreeing"] = int(base["min_agreeing"])
     base["n_points"] = int(base["n_points"])
     base["symmetry_steps"] = int(base["symmetry_steps"])
-    for k in ("loss_threshold_px", "nms_mm", "exclusion_frac", "explained_frac"):
+    base["rematch"] = base["rematch"] not in (False, "false", "False", 0, "0")
+    for k in ("loss_threshold_px", "nms_mm", "exclusion_frac", "explained_frac", "rematch_depth_frac",
+              "rematch_agree_frac"):
         base[k] = float(base[k])
     if base["output"] not in OUTPUTS:
         raise CosyError(f"refine output {base['output']!r} is not one of {', '.join(OUTPUTS)}")
@@ -235,6 +249,126 @@ def _nms(T_world_obj: np.ndarray, obj_ids: np.ndarray, n_cands: np.ndarray, scor
     return keep, into
 
 
+def rematch_leftovers(Twc: np.ndarray, K: np.ndarray, left_view: np.ndarray, left_label: np.ndarray,
+                      T_cam_left: np.ndarray, geo: list, conf: dict, kept_world: np.ndarray | None = None,
+                      kept_diam: np.ndarray | None = None, diam_of_label: np.ndarray | None = None):
+    """Objects seen in two views that matching left apart, found again with the adjusted cameras.
+
+    Candidates that cosy match could not associate (typically: their depths disagree by more
+    than the inlier threshold, which the refined cameras do not change) are paired again in 2D,
+    the paper's reprojection loss being the test: for every pair of leftover candidates of one
+    label in two placed views, the object is triangulated by the bundle adjustment with the
+    cameras held fixed (``Twc`` (V, 4, 4), ``K`` (V, 3, 3); one batched problem for all pairs);
+    a pair is accepted when both candidates agree with it (mean reprojection error under
+    ``rematch_agree_frac`` x the loss threshold: 25 px by default, twice the ``min_agreeing``
+    test, for the rotation errors of real candidates) and the object's depth in each view is within
+    ``rematch_depth_frac`` of the candidate's (what a single-view estimate is expected to get
+    right). A closed-form test first drops pairs whose viewing rays pass too far apart to pass.
+    Pairs are taken greedily by cost, each candidate once; an accepted object must not
+    overlap an object of the scene (``kept_world`` (N, 4, 4), ``kept_diam`` (N,): centres closer
+    than ``exclusion_frac`` x the smaller diameter) or another accepted one. Leftover candidates of
+    further views that agree with an accepted object join it (one more fixed-camera adjustment).
+
+    left_view (L,) view indices, left_label (L,) indices into ``geo``, T_cam_left (L, 4, 4) mm;
+    ``diam_of_label`` (n_labels,) mm. Returns a list of (member indices into the leftovers,
+    T_world_obj (4, 4), mean reprojection error px).
+    """
+    L = len(left_view)
+    tau = conf["loss_threshold_px"]
+    if L < 2:
+        return []
+    i, j = np.triu_indices(L, 1)
+    ok = (left_label[i] == left_label[j]) & (left_view[i] != left_view[j])
+    i, j = i[ok], j[ok]
+    agree = conf["rematch_agree_frac"] * tau
+    if len(i):
+        # prefilter (closed form): the rays through the two candidates' origins must pass closer
+        # than what two reprojection errors under ``agree`` px allow at their depths (x 1.5)
+        C = Twc[:, :3, 3]
+        d = (Twc[left_view, :3, :3] @ T_cam_left[:, :3, 3, None])[..., 0]
+        z = np.linalg.norm(d, axis=1)
+        d = d / np.maximum(z, 1e-9)[:, None]
+        f = np.sqrt(K[left_view, 0, 0] * K[left_view, 1, 1])
+        n = np.cross(d[i], d[j])
+        nn = np.linalg.norm(n, axis=1)
+        w = C[left_view[j]] - C[left_view[i]]
+        gap = np.where(nn > 1e-9, np.abs(np.einsum("ij,ij->i", w, n)) / np.maximum(nn, 1e-9),
+                       np.linalg.norm(np.cross(w, d[i]), axis=1))
+        near = gap <= 1.5 * agree * (z[i] / f[i] + z[j] / f[j])
+        i, j = i[near], j[near]
+    if not len(i):
+        return []
+    H = len(i)
+    cv = np.r_[left_view[i], left_view[j]]
+    co = np.r_[np.arange(H), np.arange(H)]
+    Tc = np.concatenate([T_cam_left[i], T_cam_left[j]])
+    lab = left_label[i]
+    Two, sym, _ = ba.initialise_objects(Twc, cv, co, Tc, lab, geo, None)
+    S0 = np.stack([geo[lab[o]].symmetries[k] for o, k in zip(co, sym)])
+    res = ba.bundle_adjust(Twc, Two, cv, co, Tc, K, lab, geo, iterations=min(conf["iterations"], 20),
+                           loss_threshold_px=tau, fixed_views="all", symmetries=S0)
+    err = np.nan_to_num(res.cand_error_px, nan=np.inf).reshape(2, H)
+    T_cam = invert(Twc[cv]) @ res.T_world_obj[co]
+    z_est = np.linalg.norm(T_cam[:, :3, 3], axis=1)
+    z_cand = np.linalg.norm(Tc[:, :3, 3], axis=1)
+    depth_ok = (np.abs(z_est - z_cand) <= conf["rematch_depth_frac"] * z_cand).reshape(2, H).all(0)
+    good = (err < agree).all(0) & depth_ok
+    cost = err.mean(0)
+    used = np.zeros(L, dtype=bool)
+    centres = [] if kept_world is None else list(kept_world[:, :3, 3])
+    diams = [] if kept_diam is None else list(kept_diam)
+    out = []
+    for h in np.flatnonzero(good)[np.argsort(cost[good], kind="stable")]:  # tens of pairs at most
+        if used[i[h]] or used[j[h]]:
+            continue
+        c, d = res.T_world_obj[h, :3, 3], diam_of_label[lab[h]]
+        if centres and (np.linalg.norm(np.asarray(centres) - c, axis=1)
+                        < conf["exclusion_frac"] * np.minimum(np.asarray(diams), d)).any():
+            continue
+        used[i[h]] = used[j[h]] = True
+        centres.append(c)
+        diams.append(d)
+        out.append(([int(i[h]), int(j[h])], res.T_world_obj[h], float(cost[h])))
+    if not out:
+        return out
+    # leftovers of other views that agree with an accepted object join it
+    rest = np.flatnonzero(~used)
+    if len(rest):
+        obj_lab = np.array([left_label[m[0]] for m, _, _ in out])
+        obj_views = [set(left_view[m].tolist()) for m, _, _ in out]
+        oi, ri = np.meshgrid(np.arange(len(out)), rest, indexing="ij")
+        oi, ri = oi.ravel(), ri.ravel()
+        sel = np.array([obj_lab[o] == left_label[r] and left_view[r] not in obj_views[o] for o, r in zip(oi, ri)],
+                       dtype=bool)
+        oi, ri = oi[sel], ri[sel]
+        if len(oi):
+            Tw = np.stack([T for _, T, _ in out])
+            r2 = ba.bundle_adjust(Twc, Tw[oi], left_view[ri], np.arange(len(oi)), T_cam_left[ri], K, obj_lab[oi], geo,
+                                  iterations=1, loss_threshold_px=tau, fixed_views="all")
+            e0 = np.nan_to_num(r2.initial_cand_error_px, nan=np.inf)
+            for k in np.argsort(e0, kind="stable"):
+                o, r = oi[k], ri[k]
+                if e0[k] < agree and not used[r] and left_view[r] not in obj_views[o]:
+                    used[r] = True
+                    obj_views[o].add(int(left_view[r]))
+                    out[o][0].append(int(r))
+            grown = [k for k, (m, _, _) in enumerate(out) if len(m) > 2]
+            pairs = {k: out[k][0][:2] for k in grown}
+            if grown:
+                mem = [m for k in grown for m in out[k][0]]
+                mo = np.concatenate([[n] * len(out[k][0]) for n, k in enumerate(grown)])
+                r3 = ba.bundle_adjust(Twc, np.stack([out[k][1] for k in grown]), left_view[mem], mo, T_cam_left[mem], K,
+                                      obj_lab[grown], geo, iterations=conf["iterations"], loss_threshold_px=tau,
+                                      fixed_views="all")
+                e3 = np.nan_to_num(r3.cand_error_px, nan=np.inf)
+                for n, k in enumerate(grown):
+                    if (e3[mo == n] < agree).all():
+                        out[k] = (out[k][0], r3.T_world_obj[n], float(e3[mo == n].mean()))
+                    else:  # the joint object does not fit them all: the pair alone
+                        out[k] = (pairs[k], out[k][1], out[k][2])
+    return out
+
+
 SINGLE_VIEW_NOTE = "single view: candidates passed through"
 
 
@@ -317,8 +451,11 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     cand_ids, cand_obj, objs = [], [], []
     unused = [int(c) for c in g["discarded"]]
     for o in g["objects"]:
-        members = [int(c) for c in o["cand_ids"] if int(c_im[int(c)]) in vidx]
-        unused += [int(c) for c in o["cand_ids"] if int(c_im[int(c)]) not in vidx]
+        # candidates of a look-alike label whose model is not in the object's frame only voted for
+        # its label (cosy match's label groups): not a measurement of the object's pose
+        vote_only = {int(c) for c in o.get("vote_only_cand_ids", [])}
+        members = [int(c) for c in o["cand_ids"] if int(c_im[int(c)]) in vidx and int(c) not in vote_only]
+        unused += [int(c) for c in o["cand_ids"] if int(c_im[int(c)]) not in vidx or int(c) in vote_only]
         if not members:
             continue
         cand_obj += [len(objs)] * len(members)
@@ -379,7 +516,6 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
             if len(merged) > 1:
                 entry["merged_object_ids"] = [int(objs[m]["object_id"]) for m in merged if m != k]
             objects_out.append(entry)
-        T_world_obj = T_world_obj[keep]
         stats.update({
             "iterations": int(res.iterations), "converged": bool(res.converged),
             "initial_cost_px2": float(res.initial_cost), "final_cost_px2": float(res.final_cost),
@@ -395,7 +531,41 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                     placed_by[v] = "unplaced (its candidates disagree with the refined scene)"
             unplaced = [v for v in im_ids if v not in placed or not view_ok[vidx[v]]]
             Twc = Twc[view_ok]
+            K = K[view_ok]
             views = [v for k, v in enumerate(views) if view_ok[k]]
+        T_world_obj = T_world_obj[keep]
+        n_rematched = 0
+        if conf["rematch"] and len(views) > 1:
+            # candidates matching left apart, paired again in 2D with the adjusted cameras
+            vi = {v: k for k, v in enumerate(views)}
+            left = np.array([c for c in g["discarded"] if int(c_im[int(c)]) in vi], dtype=np.int64)
+            if len(left) > 1:
+                c_obj_all = tab["obj_id"].to_numpy()
+                l_labels = sorted({int(c_obj_all[c]) for c in left})
+                l_geo = [geometry[o] for o in l_labels]
+                l_index = {o: k for k, o in enumerate(l_labels)}
+                infos = ds.models_info()
+                kept_o = [o for k, o in enumerate(objs) if keep[k]]
+                new = rematch_leftovers(
+                    Twc, K, np.array([vi[int(c_im[c])] for c in left]), np.array([l_index[int(c_obj_all[c])] for c in left]),
+                    cands.T_cam_obj[left], l_geo, conf, T_world_obj,
+                    np.array([infos[int(o["obj_id"])].diameter for o in kept_o]),
+                    np.array([infos[o].diameter for o in l_labels]))
+                next_id = max([int(o["object_id"]) for o in g["objects"]] + [-1]) + 1
+                add = []
+                for members, T, e in new:
+                    ids = left[members]
+                    objects_out.append({"object_id": next_id, "obj_id": int(c_obj_all[ids[0]]),
+                                        "score": float(c_score[ids].max()), "n_candidates": int(len(ids)),
+                                        "cand_ids": [int(c) for c in ids], "reprojection_error_px": round(e, 4),
+                                        "T_world_obj": _mat(T), "rematched": True})
+                    next_id += 1
+                    add.append(T)
+                    unused = [c for c in unused if c not in set(ids.tolist())]
+                n_rematched = len(add)
+                if add:
+                    T_world_obj = np.concatenate([T_world_obj, np.stack(add)])
+        stats["n_rematched_objects"] = n_rematched
     dt = time.perf_counter() - t0
     stats["time_s"] = round(dt, 6)
     # predictions: every kept object in every placed camera
@@ -528,7 +698,9 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     bad = [o for o in used if o not in infos]
     if bad:
         raise CosyError(f"object {bad[0]} of {gpath} is not in the dataset's models", path=ds.models_info_path)
-    used = sorted({int(o["obj_id"]) for g in doc["groups"] if len(g["im_ids"]) > 1 for o in g["objects"]})
+    c_obj = cands.table["obj_id"].to_numpy()
+    used = sorted({int(o["obj_id"]) for g in doc["groups"] if len(g["im_ids"]) > 1 for o in g["objects"]}
+                  | {int(c_obj[int(c)]) for g in doc["groups"] if len(g["im_ids"]) > 1 for c in g["discarded"]})
     geometry = {o: label_geometry(ds, o, conf["n_points"], conf["symmetry_steps"]) for o in used}
 
     groups = doc["groups"]
@@ -577,6 +749,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "median_reprojection_error_px": float(np.median(finals)) if finals else None,
         "not_converged": int(sum(not r["stats"]["converged"] for r in results)),
         "single_view_groups": int(sum(bool(r.get("single_view")) for r in results)),
+        "rematched_objects": int(sum(r["stats"].get("n_rematched_objects", 0) for r in results)),
         "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
         "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
     }
