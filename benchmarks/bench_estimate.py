@@ -35,6 +35,10 @@ from cosy_cli.singleview import estimate_stage  # noqa: E402
 
 CHAINS = {
     "templates": {"coarse": "templates", "refiner": "none", "depth_refine": "none", "top_k": 1},
+    "templates-old": {"coarse": "templates", "refiner": "none", "depth_refine": "none", "top_k": 1, "verify_top": 0,
+                      "rgb_refine": "none"},
+    "templates-icp-old": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "top_k": 5,
+                          "verify_top": 0},
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp"},
     "templates-refiner": {"coarse": "templates", "refiner": "network", "depth_refine": "none", "top_k": 1},
     "templates-icp-refiner": {"coarse": "templates", "refiner": "network", "depth_refine": "icp"},

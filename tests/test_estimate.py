@@ -121,3 +121,29 @@ def test_bad_input_gives_clear_errors(tmp_path, templates_dir):
     dets.write_text(json.dumps([{"scene_id": 1, "image_id": 0, "category_id": 1, "score": 0.9, "bbox": [1, 2, 0, 5]}]))
     r = _run(["estimate", "--scene", str(SCENE), "--detections", str(dets), "--out", out])
     assert r.exit_code == 2 and "dets.json" in r.output and "non-positive" in r.output
+
+
+def test_verification_settings_from_the_cli(tmp_path, templates_dir):
+    """--verify-top / --rgb-refine reach the settings (and the summary); bad values are refused."""
+    out = tmp_path / "v.csv"
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+              "--depth-refine", "none", "--verify-top", "8", "--rgb-refine", "none", "--top-k", "2",
+              "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert "8 verified by rendering" in r.output and "RGB refinement" not in r.output
+    doc = json.loads((tmp_path / "v.json").read_text())
+    assert doc["conf"]["verify_top"] == 8 and doc["conf"]["rgb_refine"] == "none"
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--rgb-refine", "sometimes", "--out", str(out)])
+    assert r.exit_code == 2 and "sometimes" in r.output
+    with pytest.raises(Exception, match="image_weight"):
+        estimate_stage.resolve_conf("default", image_weight=-1)
+    c = estimate_stage.decide(estimate_stage.resolve_conf("default", coarse="templates", refiner="none"),
+                              coarse_model=None, refiner_model=None, has_depth=False)
+    assert c["rgb_refine"] == "search" and "RGB refinement" in estimate_stage.describe(c)
+    assert c["verify_top"] == estimate_stage.VERIFY_TOP_RGB
+    c = estimate_stage.decide(estimate_stage.resolve_conf("default", coarse="templates", refiner="none"),
+                              coarse_model=None, refiner_model=None, has_depth=True)
+    assert c["rgb_refine"] == "none" and c["depth_refine"] == "icp"
+    assert c["verify_top"] == estimate_stage.VERIFY_TOP_DEPTH
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--verify-top", "many", "--out", str(out)])
+    assert r.exit_code == 2 and "verify_top" in r.output and "many" in r.output

@@ -30,7 +30,8 @@ from cosy_cli.multiview.matching import (LINK_NONE, LINK_ONE, LINK_RANSAC, LINK_
                                          MatchParams, match_group)
 from multiview_fixtures import make_table_dataset  # noqa: E402
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+from realdata import LMO, needs  # noqa: E402
+
 ADAPTIVE = MatchParams(threshold_rel=0.10, adaptive_k=3.0, weak_links=True)
 
 
@@ -237,7 +238,7 @@ def test_stage_outputs_threshold_placement_and_fallbacks(tables, tmp_path):
     assert s3["placed_by"]["unplaced"] == 1 and s3["placed_by"]["two objects"] == 1
 
 
-@pytest.mark.skipif(not (REALDATA / "lmo_dev").is_dir(), reason="../shared/realdata/lmo_dev is absent")
+@needs(LMO)
 def test_lmo_multi_view_never_below_single_view(tmp_path):
     """Real LM-O geometry (8 scenes of 2-3 views, objects ~1 m away), candidates simulated at
     3 % depth / 5 deg: multi-view lifts BOP AR (MSSD, MSPD) well above single view; with
@@ -248,7 +249,7 @@ def test_lmo_multi_view_never_below_single_view(tmp_path):
     from cosy_cli.synth import candidates as sc
 
     warnings.filterwarnings("ignore", message=".*orthonormal only.*")
-    src = REALDATA / "lmo_dev"
+    src = LMO
     ds = tmp_path / "lmo"
     (ds / "test").mkdir(parents=True)
     for f in ("camera.json", "test_targets_bop19.json"):

@@ -44,7 +44,14 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
               help="Point-to-plane ICP of each candidate on the depth image [auto: icp when the split has depth].")
 @click.option("--refiner-iterations", type=click.IntRange(min=0), default=None, help="Refiner iterations [paper: 4].")
 @click.option("--top-k", type=click.IntRange(min=1), default=None,
-              help="Template hypotheses per detection, ranked by depth agreement after ICP [5].")
+              help="Template hypotheses per detection kept after verification; with depth, each goes through ICP "
+                   "and the best by depth and image agreement is kept [16].")
+@click.option("--verify-top", default=None, metavar="N|auto",
+              help="Templates: this many hypotheses per detection scored by rendering them against the image "
+                   "(0: template score only) [auto: 64 with ICP on depth, else 48].")
+@click.option("--rgb-refine", type=click.Choice(["search", "none", "auto"]), default=None,
+              help="Templates: refine the best hypothesis on the image by a local search on the rendering score "
+                   "[auto: when no depth refinement runs].")
 @click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
               help="Templates folder (built by `cosy templates` if missing) [OUT's folder/templates].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
@@ -53,7 +60,8 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
-             depth_refine, refiner_iterations, top_k, templates_dir, providers, batch_size, overwrite, quiet) -> None:
+             depth_refine, refiner_iterations, top_k, verify_top, rgb_refine, templates_dir, providers, batch_size,
+             overwrite, quiet) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
     Writes one row per detection (label, the detector's score, T_cam_obj with t in mm) that
@@ -65,7 +73,8 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
     coarse_method, coarse_model = _method_or_model(coarse, COARSE_METHODS)
     refiner_method, refiner_model = _method_or_model(refiner, REFINER_METHODS)
     c = estimate_stage.resolve_conf(conf, coarse=coarse_method, refiner=refiner_method, depth_refine=depth_refine,
-                                    refiner_iterations=refiner_iterations, top_k=top_k, providers=providers,
+                                    refiner_iterations=refiner_iterations, top_k=top_k, verify_top=verify_top,
+                                    rgb_refine=rgb_refine, providers=providers,
                                     batch_size=batch_size)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,

@@ -364,7 +364,7 @@ class SceneRenderer:
 
     def render_crops(self, K_crops, obj_ids: Sequence[int], T_cam_obj, size: tuple[int, int], *, colors=None,
                      light_dir=None, light_intensity=None, ambient: float = 0.3,
-                     with_rgb: bool = True, tiles=None) -> RenderOutput:
+                     with_rgb: bool = True, tiles=None, with_depth: bool = True) -> RenderOutput:
         """B images of ``size`` = (w, h), image b showing only instance b: K_crops (B, 3, 3)
         (e.g. from :func:`cosy_cli.geometry.crop_intrinsics`), obj_ids (B,), T_cam_obj (B, 4, 4) mm.
         Returns rgb (B, h, w, 3), depth (B, h, w), instance (B, h, w) (= b on the object, -1 elsewhere).
@@ -373,7 +373,7 @@ class SceneRenderer:
         tiles: optional (n,) non-decreasing image index of each of n instances, to draw several
         instances (with occlusion) into one image: then K_crops has one row per image (at least
         max(tiles) + 1; images without instances come out empty) and ``instance`` holds the index
-        i into ``obj_ids`` of the visible instance."""
+        i into ``obj_ids`` of the visible instance. with_depth=False: ``depth`` is None (not read back)."""
         w, h = self._size(size)
         ids, T = self._check_instances(obj_ids, T_cam_obj)
         n = len(ids)
@@ -390,7 +390,8 @@ class SceneRenderer:
                     raise ValueError(f"tiles reach image {tile_of[-1]} but K_crops has {n_tiles} rows")
         K = self._check_K(K_crops, n_tiles)
         return self._render_tiles(n_tiles, K, w, h, ids, T, tile_of, np.arange(n), self._check_colors(colors, n),
-                                  self._lighting(light_dir, light_intensity, ambient), with_rgb=with_rgb)
+                                  self._lighting(light_dir, light_intensity, ambient), with_rgb=with_rgb,
+                                  with_depth=with_depth)
 
     def close(self) -> None:
         """Free the GPU meshes, framebuffer and OpenGL context. Idempotent."""

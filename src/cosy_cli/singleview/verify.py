@@ -1,0 +1,421 @@
+"""Verification of pose hypotheses by rendering, and a training-free RGB refinement.
+
+Template retrieval (:mod:`~cosy_cli.singleview.templates`) ranks views by sparse shape gradients
+only; in a cluttered, occluded real image its best template is often a wrong rotation while a
+right one is among its top few dozen. This module renders hypotheses with the mesh's own colours
+(vertex colours or texture; flat grey for bare meshes) into the detection's crop camera and
+scores them against the image, then refines the best by a local search on the same score.
+
+Per detection (:class:`CropObservation`, computed once): a square window around the detection
+box, grown by ``margin`` x its larger side on each side, resampled to ``crop`` x ``crop`` px; its
+crop intrinsics (:func:`~cosy_cli.geometry.camera.crop_intrinsics`); the image's colour edges
+(Canny on the crop, the largest channel response) and their distance transform; a colour model
+of the background (the crop's pixels outside the detection box).
+
+Per hypothesis (:meth:`Verifier.score`, batched: one atlas render for all hypotheses of an
+image), each term in [0, 1]:
+
+- ``edge``: the rendered silhouette's outline and the render's own colour edges against the
+  image's edges: mean of max(0, 1 - d / ``edge_tol``) over the rendered edge pixels, d the
+  distance (crop px) to the nearest image edge. Occluded outline pixels find no edge: a partly
+  hidden object loses a part of this term, not its rank (every hypothesis of that detection loses
+  the same occluded part).
+- ``colour``: inside the rendered silhouette, agreement of the image colour with the rendered
+  colour after one brightness gain per hypothesis (least squares): mean of max(0, 1 - |I - g R| /
+  ``colour_tol``). Shape-only meshes (no colours) give this term no weight.
+- ``region``: how well the silhouette separates object from background pixels within the box:
+  with p(x) the probability that pixel x is not background (its colour is rare outside the box),
+  the mean of p inside the silhouette (within the box) minus its mean outside, mapped to [0, 1].
+- ``box``: the rendered silhouette's box against the detection box: the fraction of the detection
+  box covered by the silhouette's box (a visible box lies inside the whole object's), times
+  min(1, area(detection box) / area(silhouette box)) ^ ``box_excess`` (an occluded object's
+  silhouette box may be larger than its visible box: a soft penalty only).
+
+score = sum of the weighted terms / sum of the weights used.
+
+Cost (2-core CPU, llvmpipe): one 64 x 64 render of a 3000-face copy costs ~0.4 ms, about as much
+as all the terms of that hypothesis together (they are computed only at the rendered edge and
+silhouette pixels, gathered by flat index). :meth:`Verifier.rank` therefore scores all hypotheses
+with a coarser copy (``rank_faces`` faces, 1000) and re-scores only each detection's best
+``rank_keep`` (8) with the ``max_faces`` copy; these stay ahead in the ranking. On the odd LM-O
+dev scenes this cascade, 48 instead of 64 hypotheses and 3 x 16 instead of 4 x 24 search samples
+together cost 0.006 AR (MSSD, MSPD) (0.317 -> 0.311) for 0.54x the time (side by side, one run);
+see benchmarks/bench_realdata_singleview.py --sweep for each step's cost.
+
+Refinement (:meth:`Verifier.refine`): a local random search in the crop's camera. Each round
+perturbs the current best pose of every detection ``samples`` times: rotation by a random axis x
+an angle ~ N(0, sigma_rot), image-plane shift of the object origin ~ N(0, sigma_px) crop px and a
+relative depth change ~ N(0, sigma_depth) (default 0: in a 64 px crop the depth barely changes the
+score, and searching it let the pose drift along the ray on a synthetic test); scores all of
+them in one render and keeps a sample only when it beats the current best. The spreads shrink
+by ``shrink`` per round. The score never decreases, and the pose cannot leave the neighbourhood
+of the input by more than the sum of the spreads (it does not wander). With depth (ICP) the
+cascade is off: every hypothesis is scored with the full copies.
+
+Lengths in mm; T_cam_obj 4x4 (OpenCV camera); K (3, 3) px; boxes x1, y1, x2, y2 px (pixel edges).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.camera import crop_affine, crop_intrinsics
+
+
+@dataclass
+class VerifyConf:
+    """Settings of verification and RGB refinement (chosen on the odd LM-O dev scenes, see
+    benchmarks/bench_realdata_singleview.py)."""
+
+    crop: int = 64                 # crop side, px
+    margin: float = 0.2            # window = detection box grown by this x its larger side on each side
+    max_faces: int = 3000          # rendering uses a decimated copy of at most this many faces
+    rank_faces: int = 1000         # > 0: rank() first scores all hypotheses with a coarser copy (this many faces) ...
+    rank_keep: int = 8             # ... and re-scores only each detection's best this many with max_faces
+    edge_tol: float = 2.5          # crop px: an edge pixel this far from an image edge scores 0
+    colour_tol: float = 0.25       # RGB distance (0..1 per channel) at which a pixel scores 0
+    w_edge: float = 0.0            # chamfer to Canny edges (0: the oriented term alone was better)
+    w_colour: float = 1.0
+    w_region: float = 2.0
+    w_box: float = 0.5
+    w_prior: float = 1.0           # the hypothesis' own score (template matching), when given
+    box_excess: float = 1.0
+    canny: tuple = (40, 100)       # Canny thresholds (grey levels)
+    min_gradient: float = 40.0     # Sobel magnitude (grey levels) of an image gradient in the oriented term
+    w_orient: float = 1.0
+    # refinement
+    rounds: int = 3
+    samples: int = 16
+    sigma_rot_deg: float = 10.0
+    sigma_px: float = 2.0          # crop px
+    sigma_depth: float = 0.0       # relative; 0: the depth stays the box's (barely observable in a small crop)
+    shrink: float = 0.6
+    refine_faces: int = 0          # > 0: the search renders copies of at most this many faces (0: max_faces)
+    seed: int = 0
+
+
+def _rodrigues_batch(w: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotations of rotation vectors (n, 3) (radians)."""
+    th = np.linalg.norm(w, axis=1)
+    k = w / np.maximum(th, 1e-12)[:, None]
+    Kx = np.zeros((len(w), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
+
+
+@dataclass
+class CropObservation:
+    """What the scores need of one detection's image window (see the module docstring)."""
+
+    K: np.ndarray          # (3, 3) crop intrinsics
+    window: np.ndarray     # (4,) x1, y1, x2, y2 of the window in the image, px
+    box_crop: np.ndarray   # (4,) the detection box in crop px (pixel edges)
+    rgb: np.ndarray        # (S, S, 3) float32 0..1
+    dist: np.ndarray       # (S, S) float32 distance (crop px) to the nearest image edge
+    not_bg: np.ndarray     # (S, S) float32 in [0, 1]: 1 - how common the pixel's colour is outside the box
+    in_box: np.ndarray     # (S, S) bool
+    resp: np.ndarray       # (8, S, S) float32 orientation responses (LINEMOD-like, spread 3x3)
+
+
+def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf) -> CropObservation:
+    import cv2
+
+    S = conf.crop
+    x1, y1, x2, y2 = (float(v) for v in box)
+    side = max(x2 - x1, y2 - y1, 2.0) * (1.0 + 2.0 * conf.margin)
+    cx, cy = (x1 + x2) / 2, (y1 + y2) / 2
+    win = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
+    A = crop_affine(win, (S, S))
+    Kc = crop_intrinsics(K, win, (S, S))
+    src = np.asarray(rgb)
+    scale = S / side
+    if scale < 0.7:  # anti-alias when shrinking
+        src = cv2.GaussianBlur(src, (0, 0), 0.5 / scale)
+    crop = cv2.warpAffine(src, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    edges = np.zeros((S, S), np.uint8)
+    for c in range(3):
+        edges |= cv2.Canny(crop[..., c], *conf.canny, L2gradient=True)
+    dist = cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
+    bx = np.array([(x1 - win[0]) * scale, (y1 - win[1]) * scale, (x2 - win[0]) * scale, (y2 - win[1]) * scale])
+    yy, xx = np.mgrid[0:S, 0:S] + 0.5
+    in_box = (xx >= bx[0]) & (xx <= bx[2]) & (yy >= bx[1]) & (yy <= bx[3])
+    # background colour model: 8x8x8 RGB histogram of the window outside the box
+    q = (crop // 32).astype(np.int64)
+    code = (q[..., 0] * 8 + q[..., 1]) * 8 + q[..., 2]
+    hb = np.bincount(code[~in_box], minlength=512).astype(np.float64)
+    hb = np.convolve(hb, [0.25, 0.5, 0.25], mode="same")  # a little smoothing (along blue)
+    hf = np.bincount(code[in_box], minlength=512).astype(np.float64)
+    pb = hb / max(hb.sum(), 1.0)
+    pf = hf / max(hf.sum(), 1.0)
+    not_bg = (pf / np.maximum(pf + pb, 1e-12))[code].astype(np.float32)
+    # oriented responses: per pixel the colour channel of largest gradient, quantised, spread 3x3
+    from .templates import _LUT, orientation_bins, sobel
+
+    gx, gy = sobel(np.moveaxis(crop.astype(np.float32), -1, 0))
+    mag2 = gx * gx + gy * gy
+    ch = np.argmax(mag2, axis=0)[None]
+    gx, gy = np.take_along_axis(gx, ch, 0)[0], np.take_along_axis(gy, ch, 0)[0]
+    strong = np.take_along_axis(mag2, ch, 0)[0] >= conf.min_gradient ** 2
+    bits = np.where(strong, np.left_shift(1, orientation_bins(np.arctan2(gy, gx))), 0).astype(np.uint8)
+    p = np.pad(bits, 1)
+    spread = np.zeros((S, S), np.uint8)
+    for dy in range(3):
+        for dx in range(3):
+            spread |= p[dy:dy + S, dx:dx + S]
+    resp = _LUT[:, spread].astype(np.float32) / 255.0
+    return CropObservation(Kc, win, bx, crop.astype(np.float32) / 255.0, dist.astype(np.float32), not_bg, in_box,
+                           resp)
+
+
+@dataclass
+class RankedHypotheses:
+    """Hypotheses of N detections re-ranked by :meth:`Verifier.rank`, best first: T_cam_obj
+    (N, k, 4, 4) mm, score (N, k) verification scores (-1 for missing hypotheses; with the cascade
+    (``rank_faces``), those after the first ``rank_keep`` are the coarse copies' scores), prior (N, k)
+    their template scores, obs the N crop observations (for :meth:`Verifier.refine`)."""
+
+    T_cam_obj: np.ndarray
+    score: np.ndarray
+    prior: np.ndarray
+    obs: list
+
+
+
+class Verifier:
+    """Scores and refines hypotheses by rendering; one headless renderer over decimated meshes.
+
+    db: ObjectDatabase; conf: VerifyConf. Use as a context manager or call close()."""
+
+    def __init__(self, db, conf: VerifyConf | None = None):
+        self.db = db
+        self.conf = conf or VerifyConf()
+        self._renderers: dict[int, object] = {}
+        self._coloured: dict[int, bool] = {}
+        self._coarse: dict[int, bool] = {}  # obj_id -> rank() renders a coarser copy of it
+
+    def _renderer_with(self, max_faces: int):
+        if max_faces not in self._renderers:
+            from ..rendering import SceneRenderer, render_copy
+
+            meshes = {}
+            for o in self.db:
+                m = o.mesh
+                self._coloured[o.obj_id] = bool(getattr(m.visual, "defined", False))
+                # a copy less than half the size of the max_faces one saves little: the latter then
+                coarser = len(m.faces) > 2 * max_faces and max_faces < self.conf.max_faces
+                if max_faces == self.conf.rank_faces:
+                    self._coarse[o.obj_id] = coarser
+                meshes[o.obj_id] = render_copy(m, max_faces if coarser else self.conf.max_faces)
+            S = self.conf.crop
+            self._renderers[max_faces] = SceneRenderer(meshes, S, S, znear=1.0, zfar=100_000.0, max_faces=None)
+        return self._renderers[max_faces]
+
+    @property
+    def renderer(self):
+        """The renderer of the decimated copies with at most ``max_faces`` faces (made on first use)."""
+        return self._renderer_with(self.conf.max_faces)
+
+    def close(self):
+        for r in self._renderers.values():
+            r.close()
+        self._renderers = {}
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------ scoring
+
+    def score(self, obs: list[CropObservation], det: np.ndarray, obj_ids: np.ndarray, T: np.ndarray,
+              prior: np.ndarray | None = None, terms: bool = False, max_faces: int | None = None):
+        """Scores (n,) of hypotheses T (n, 4, 4) of detections ``det`` (n,) indices into ``obs``,
+        objects obj_ids (n,); ``prior`` (n,) in [0, 1]: the hypotheses' own scores (template
+        matching), weighted by ``w_prior``. With ``terms``, also a dict of the per-term (n,) arrays.
+        max_faces: render copies of at most this many faces (default ``conf.max_faces``).
+
+        One render of all n hypotheses; the terms are computed on the rendered pixels only (edge
+        pixels, silhouette pixels), gathered as flat index arrays."""
+        c = self.conf
+        S = c.crop
+        n = len(T)
+        if n == 0:
+            return (np.zeros(0), {}) if terms else np.zeros(0)
+        det = np.asarray(det)
+        udet, ridx = np.unique(det, return_inverse=True)  # the observations used, and each hypothesis' row
+        Ks = np.stack([obs[d].K for d in udet])[ridx]
+        ren = self.renderer if max_faces is None else self._renderer_with(int(max_faces))
+        out = ren.render_crops(Ks, [int(i) for i in obj_ids], T, (S, S), with_depth=False)
+        mask = out.instance >= 0  # (n, S, S)
+        area = np.count_nonzero(mask, axis=(1, 2)).astype(np.float64)
+        has = area > 0
+        rgb8 = out.rgb
+        g = rgb8[..., 0].astype(np.float32)
+        g += rgb8[..., 1]
+        g += rgb8[..., 2]
+        g *= np.float32(1.0 / 765.0)  # grey level of the render, 0..1
+        # edges of the render: the outline and colour edges (central differences, 0 on the border)
+        pad = np.pad(mask, ((0, 0), (1, 1), (1, 1)))
+        inner = pad[:, :-2, 1:-1] & pad[:, 2:, 1:-1] & pad[:, 1:-1, :-2] & pad[:, 1:-1, 2:]
+        E = mask & ~inner
+        gx = np.zeros_like(g)
+        gy = np.zeros_like(g)
+        np.subtract(g[:, :, 2:], g[:, :, :-2], out=gx[:, :, 1:-1])
+        np.subtract(g[:, 2:], g[:, :-2], out=gy[:, 1:-1])
+        E |= inner & (gx * gx + gy * gy > np.float32(0.08 ** 2))
+        fe = np.flatnonzero(E)  # flat indices b * S * S + y * S + x of the edge pixels
+        eb, rem = np.divmod(fe, S * S)
+        ey, ex = np.divmod(rem, S)
+        ne = np.bincount(eb, minlength=n).astype(np.float64)
+        if c.w_edge > 0:
+            dist = np.stack([obs[d].dist for d in udet])
+            e_score = np.bincount(eb, np.maximum(0.0, 1.0 - dist.reshape(-1)[ridx[eb] * (S * S) + rem] / c.edge_tol),
+                                  minlength=n) / np.maximum(ne, 1)
+        else:
+            e_score = np.zeros(n)
+        # oriented: the render's gradient orientation at its edge pixels against the image's responses;
+        # the outline against the black background counts even for dark objects (+0.25 on the silhouette)
+        from .templates import orientation_bins
+
+        gm = (g + np.float32(0.25) * mask).reshape(-1)
+        inx, iny = (ex > 0) & (ex < S - 1), (ey > 0) & (ey < S - 1)
+        gxm = np.where(inx, gm.take(np.where(inx, fe + 1, fe)) - gm.take(np.where(inx, fe - 1, fe)), 0.0)
+        gym = np.where(iny, gm.take(np.where(iny, fe + S, fe)) - gm.take(np.where(iny, fe - S, fe)), 0.0)
+        ob = orientation_bins(np.arctan2(gym, gxm)).astype(np.intp)
+        resp = np.stack([obs[d].resp for d in udet]).reshape(-1)  # (U, 8, S, S) flat
+        o_score = np.bincount(eb, resp.take((ridx[eb] * 8 + ob) * (S * S) + rem), minlength=n) / np.maximum(ne, 1)
+        # colour with one gain per hypothesis, on the silhouette pixels
+        fm = np.flatnonzero(mask)
+        mb, mpix = np.divmod(fm, S * S)
+        opix = ridx[mb] * (S * S) + mpix  # the same pixel in the observation's crop
+        I = np.stack([obs[d].rgb for d in udet]).reshape(-1, 3)[opix]  # (P, 3) 0..1
+        Rv = rgb8.reshape(-1, 3)[fm].astype(np.float32) * np.float32(1.0 / 255.0)
+        num = np.bincount(mb, np.einsum("ij,ij->i", I, Rv), minlength=n)
+        den = np.bincount(mb, np.einsum("ij,ij->i", Rv, Rv), minlength=n)
+        gain = np.clip(num / np.maximum(den, 1e-9), 0.3, 3.0).astype(np.float32)
+        diff = np.linalg.norm(I - gain[mb, None] * Rv, axis=-1)
+        c_score = np.bincount(mb, np.maximum(0.0, 1.0 - diff / c.colour_tol), minlength=n) / np.maximum(area, 1)
+        # region: object-like pixels inside vs outside the silhouette, within the box
+        nb = np.stack([obs[d].not_bg for d in udet])
+        inb = np.stack([obs[d].in_box for d in udet])
+        nb_box = (nb * inb).sum((1, 2))[ridx]
+        n_box = inb.sum((1, 2))[ridx].astype(np.float64)
+        w_in = inb.reshape(-1)[opix]
+        n_in = np.bincount(mb, w_in, minlength=n)
+        s_in = np.bincount(mb, nb.reshape(-1)[opix] * w_in, minlength=n)
+        pin = s_in / np.maximum(n_in, 1)
+        pout = (nb_box - s_in) / np.maximum(n_box - n_in, 1)
+        r_score = np.clip(0.5 + 0.5 * (pin - pout), 0.0, 1.0)
+        # box
+        ys = mask.any(2)
+        xs = mask.any(1)
+        x1 = np.where(has, xs.argmax(1), 0)
+        x2 = np.where(has, S - xs[:, ::-1].argmax(1), 0)
+        y1 = np.where(has, ys.argmax(1), 0)
+        y2 = np.where(has, S - ys[:, ::-1].argmax(1), 0)
+        bx = np.stack([obs[d].box_crop for d in udet])[ridx]
+        iw = np.clip(np.minimum(x2, bx[:, 2]) - np.maximum(x1, bx[:, 0]), 0, None)
+        ih = np.clip(np.minimum(y2, bx[:, 3]) - np.maximum(y1, bx[:, 1]), 0, None)
+        barea = (bx[:, 2] - bx[:, 0]) * (bx[:, 3] - bx[:, 1])
+        marea = np.maximum((x2 - x1) * (y2 - y1), 1e-9)
+        b_score = (iw * ih / np.maximum(barea, 1e-9)) * np.minimum(1.0, barea / marea) ** c.box_excess
+        coloured = np.array([self._coloured.get(int(o), False) for o in obj_ids])
+        wc = np.where(coloured, c.w_colour, 0.0)
+        wp = 0.0 if prior is None else c.w_prior
+        pr = 0.0 if prior is None else np.nan_to_num(np.asarray(prior, dtype=np.float64))
+        total = (c.w_edge * e_score + c.w_orient * o_score + wc * c_score + c.w_region * r_score
+                 + c.w_box * b_score + wp * pr) / (c.w_edge + c.w_orient + wc + c.w_region + c.w_box + wp)
+        total = np.where(has, total, 0.0)
+        if terms:
+            return total, {"orient": o_score, "edge": e_score, "colour": c_score, "region": r_score, "box": b_score}
+        return total
+
+    def rank(self, rgb: np.ndarray, K: np.ndarray, boxes: np.ndarray, obj_ids: np.ndarray,
+              T_hyp: np.ndarray, prior: np.ndarray | None = None, cascade: bool = True) -> RankedHypotheses:
+        """Score the k hypotheses T_hyp (N, k, 4, 4) of N detections (boxes (N, 4) px, obj_ids (N,))
+        in one render and sort each detection's by score. prior (N, k): template scores (NaN where a
+        detection has fewer than k hypotheses: those rank last). cascade=False: every hypothesis is
+        scored with the ``max_faces`` copies (no coarse first pass)."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        obj_ids = np.asarray(obj_ids).reshape(-1)
+        T_hyp = np.asarray(T_hyp, dtype=np.float64)
+        N, k = T_hyp.shape[:2]
+        pr = np.zeros((N, k)) if prior is None else np.asarray(prior, dtype=np.float64)
+        obs = [observe(rgb, K, b, self.conf) for b in boxes]
+        valid = np.isfinite(pr) & np.all(np.isfinite(T_hyp.reshape(N, k, -1)), -1) & (T_hyp[..., 2, 3] > 0)
+        di, hi = np.nonzero(valid)
+        sc = np.full((N, k), -1.0)  # verification scores are in [0, 1]: missing hypotheses rank last
+        c = self.conf
+        cascade = cascade and 0 < c.rank_faces < c.max_faces and c.rank_keep < k
+        if cascade:
+            self._renderer_with(c.rank_faces)
+            coarse = np.array([self._coarse[int(o)] for o in obj_ids], bool)
+            cascade = bool(coarse.any())
+        if len(di):
+            sc[di, hi] = self.score(obs, di, obj_ids[di], T_hyp[di, hi], None if prior is None else pr[di, hi],
+                                    max_faces=c.rank_faces if cascade else None)
+        ahead = np.zeros((N, k))
+        if cascade:  # re-score each detection's best rank_keep with the full copies; they stay ahead
+            top = np.argsort(-sc, axis=1, kind="stable")[:, :c.rank_keep]
+            di2 = np.repeat(np.arange(N), top.shape[1])
+            hi2 = top.reshape(-1)
+            keep = (sc[di2, hi2] >= 0) & coarse[di2]  # objects drawn from their max_faces copy: scored already
+            di2, hi2 = di2[keep], hi2[keep]
+            if len(di2):
+                sc[di2, hi2] = self.score(obs, di2, obj_ids[di2], T_hyp[di2, hi2],
+                                          None if prior is None else pr[di2, hi2])
+                ahead[di2, hi2] = 2.0
+        order = np.argsort(-(sc + ahead), axis=1, kind="stable")
+        rows = np.arange(N)[:, None]
+        return RankedHypotheses(T_hyp[rows, order], sc[rows, order], pr[rows, order], obs)
+
+
+    # ------------------------------------------------------------------ refinement
+
+    def refine(self, obs: list[CropObservation], obj_ids: np.ndarray, T: np.ndarray,
+               prior: np.ndarray | None = None, init_score: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Local random search (see the module docstring) of poses T (m, 4, 4), one per observation
+        ``obs[i]``. ``init_score`` (m,): the scores of T when known (e.g. from :meth:`rank`, with the
+        same ``prior``), saving one render. Returns the refined poses and their scores (never below
+        the input's)."""
+        c = self.conf
+        m = len(T)
+        T = np.array(T, dtype=np.float64)
+        det = np.arange(m)
+        obj_ids = np.asarray(obj_ids).reshape(-1)
+        faces = c.refine_faces if 0 < c.refine_faces != c.max_faces else None
+        best = (self.score(obs, det, obj_ids, T, prior, max_faces=faces) if init_score is None or faces
+                else np.array(init_score, dtype=np.float64))
+        prior_n = None if prior is None else np.repeat(np.asarray(prior, dtype=np.float64), c.samples)
+        rng = np.random.default_rng(c.seed)
+        s_rot, s_px, s_z = math.radians(c.sigma_rot_deg), c.sigma_px, c.sigma_depth
+        ns = c.samples
+        for _ in range(c.rounds):
+            w = rng.normal(size=(m * ns, 3)) * s_rot
+            dR = _rodrigues_batch(w).reshape(m, ns, 3, 3)
+            dz = np.exp(rng.normal(size=(m, ns)) * s_z)
+            dpx = rng.normal(size=(m, ns, 2)) * s_px
+            Tn = np.repeat(T[:, None], ns, 1)
+            Tn[..., :3, :3] = dR @ T[:, None, :3, :3]  # rotate about the object origin, camera axes
+            t = T[:, :3, 3]
+            Ks = np.stack([o.K for o in obs])
+            # image-plane shift at the object's depth, then depth scaled along the ray
+            shift = np.zeros((m, ns, 3))
+            shift[..., 0] = dpx[..., 0] * t[:, None, 2] / Ks[:, None, 0, 0]
+            shift[..., 1] = dpx[..., 1] * t[:, None, 2] / Ks[:, None, 1, 1]
+            Tn[..., :3, 3] = (t[:, None] + shift) * dz[..., None]
+            sc = self.score(obs, np.repeat(det, ns), np.repeat(obj_ids, ns), Tn.reshape(-1, 4, 4),
+                            prior_n, max_faces=faces).reshape(m, ns)
+            j = sc.argmax(1)
+            better = sc[det, j] > best
+            T[better] = Tn[det[better], j[better]]
+            best[better] = sc[det[better], j[better]]
+            s_rot, s_px, s_z = s_rot * c.shrink, s_px * c.shrink, s_z * c.shrink
+        return T, best
+
