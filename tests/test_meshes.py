@@ -295,6 +295,7 @@ def test_missing_texture_one_warning_and_grey(tmp_path, kind):
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         mesh = load_mesh(path)
+        load_mesh(path)  # loaded again (another stage, another renderer): no second warning
     msgs = [str(x.message) for x in w if issubclass(x.category, CosyWarning)]
     assert len(msgs) == 1 and str(path) in msgs[0] and "missing" in msgs[0], msgs
     assert "\n" not in msgs[0]

@@ -19,6 +19,14 @@ class MeshFileError(CosyError):
     skips a figure it cannot draw) let this one through: every item using the model would fail."""
 
 
+_WARNED_TEXTURES: set[str] = set()  # mesh files whose missing texture was reported
+
+
+def forget_reported_textures() -> None:
+    """Report missing textures again (``cosy validate`` lists every warning of its own run)."""
+    _WARNED_TEXTURES.clear()
+
+
 def load_mesh(path: str | Path):
     """A trimesh.Trimesh from a PLY/OBJ/... file (vertices in mm), checked, keeping colours and UVs.
 
@@ -62,8 +70,10 @@ def load_mesh(path: str | Path):
         raise MeshFileError(f"the header declares {header.count('vertex')} vertices but {len(mesh.vertices)} "
                             "were read (truncated or malformed file)", path=path)
     if missing:
-        warn(f"{missing[0]!r}, a texture named by the mesh, is missing: rendered without texture "
-             f"(grey){f' ({len(missing)} missing files)' if len(missing) > 1 else ''}", path=path)
+        if str(path.resolve()) not in _WARNED_TEXTURES:  # once per mesh file and process
+            _WARNED_TEXTURES.add(str(path.resolve()))
+            warn(f"{missing[0]!r}, a texture named by the mesh, is missing: rendered without texture "
+                 f"(grey){f' ({len(missing)} missing files)' if len(missing) > 1 else ''}", path=path)
         mesh.visual = trimesh.visual.ColorVisuals(mesh=mesh)
     return mesh
 

@@ -49,7 +49,7 @@ import numpy as np
 from ..errors import CosyError, CosyWarning, warn
 from ..io import bop, images
 from ..io.dataset import DEPTH_SCALE_RTOL, BopDataset, depth_vs_gt, pp_central, pp_outside
-from ..objects.database import ObjectModel, diameter_of
+from ..objects.database import ObjectModel, diameter_of, forget_reported_textures
 from ..objects.symmetries import continuous_symmetry_transforms
 
 PP_MARGIN = 0.1  # principal point may lie this fraction of the image size outside the image
@@ -874,6 +874,7 @@ def validate_dataset(root: str | Path, split: str = "test", split_type: str | No
                    symmetry_percentile=float(symmetry_percentile), progress=progress)
     with _quiet_opencv(), warnings.catch_warnings(record=True) as caught:  # opencv: would interleave with the lines
         warnings.simplefilter("always", CosyWarning)
+        forget_reported_textures()  # this run's report lists them, even if an earlier load reported them
         v.check_camera()
         v.check_models()
         v.check_scenes()
