@@ -15,7 +15,8 @@ on the even scenes (held out) and on all scenes, with seeds 0, 1, 2 (mean over s
 Usage::
 
     python benchmarks/bench_realdata_multiview.py [--seeds 0,1,2] [--subset even|odd|all]
-        [--own-lmo CANDS.csv] [--own-ycbv CANDS.csv] [--set match.KEY=V --set refine.KEY=V]
+        [--own-lmo CANDS.csv] [--own-ycbv CANDS.csv] [--own-hypotheses 1,3,5]
+        [--set match.KEY=V --set refine.KEY=V]
         [--kinds 1/2,3/5,5/8g] [--work DIR]
 
 Prints a Markdown table (and writes it to ``results/realdata_multiview.md`` unless ``--no-write``).
@@ -138,6 +139,9 @@ def main(argv=None) -> None:
     ap.add_argument("--subsets", default="even,all", help="scene subsets of lmo_dev to report (odd, even, all)")
     ap.add_argument("--kinds", default="1/2,3/5,5/8g")
     ap.add_argument("--own-lmo", type=Path, default=None, help="cosy estimate --from-gt candidates on lmo_dev")
+    ap.add_argument("--own-hypotheses", default="1",
+                    help="with --own-lmo/--own-ycbv: match.hypotheses values to compare, e.g. 1,3,5 (the CSV's "
+                         "sidecar from cosy estimate --hypotheses N)")
     ap.add_argument("--own-ycbv", type=Path, default=None, help="cosy estimate --from-gt candidates on ycbv_0000")
     ap.add_argument("--set", action="append", default=[], help="match.KEY=VALUE or refine.KEY=VALUE")
     ap.add_argument("--work", type=Path, default=None)
@@ -171,12 +175,17 @@ def main(argv=None) -> None:
         for s in subsets:
             a = np.array(res[s])
             rows.append(("lmo_dev", KIND_NAMES[kind], s, a[:, 0].mean(), a[:, 1].mean()))
+    own_h = [int(h) for h in args.own_hypotheses.split(",") if h]
     if args.own_lmo is not None:
-        w = work / "lmo_own"
-        w.mkdir(parents=True, exist_ok=True)
-        r = case(lmo, "test", args.own_lmo, w, subsets, mc, rc)
-        for s in subsets:
-            rows.append(("lmo_dev", KIND_NAMES["own"], s, *r[s]))
+        for h in own_h:
+            w = work / f"lmo_own_h{h}"
+            w.mkdir(parents=True, exist_ok=True)
+            r = case(lmo, "test", args.own_lmo, w, subsets, {**mc, "hypotheses": h} if h > 1 else mc, rc)
+            name = KIND_NAMES["own"] + (f", {h} hypotheses" if len(own_h) > 1 or h > 1 else "")
+            for s in subsets:
+                rows.append(("lmo_dev", name, s, *r[s]))
+            print(f"  lmo own, {h} hypotheses: match {r['match']['time_per_group_ms']:.2f} ms per group; "
+                  + ", ".join(f"{s} {r[s][0]:.3f} -> {r[s][1]:.3f}" for s in subsets), flush=True)
     ycbv = args.ycbv or REALDATA / "ycbv_0000"
     if not args.no_ycbv and ycbv.is_dir():
         if not any(ycbv.glob("train_real/*/scene_gt_info.json")):  # the shared copy has none: make it
@@ -184,10 +193,12 @@ def main(argv=None) -> None:
         yds = BopDataset(ycbv, "train_real")
         ysub = {"all": list(yds.scene_ids)}
         if args.own_ycbv is not None:
-            w = work / "ycbv_own"
-            w.mkdir(parents=True, exist_ok=True)
-            r = case(ycbv, "train_real", args.own_ycbv, w, ysub, mc, rc)
-            rows.append(("ycbv_0000 (10 frames)", KIND_NAMES["own"], "all", *r["all"]))
+            for h in own_h:
+                w = work / f"ycbv_own_h{h}"
+                w.mkdir(parents=True, exist_ok=True)
+                r = case(ycbv, "train_real", args.own_ycbv, w, ysub, {**mc, "hypotheses": h} if h > 1 else mc, rc)
+                name = KIND_NAMES["own"] + (f", {h} hypotheses" if len(own_h) > 1 or h > 1 else "")
+                rows.append(("ycbv_0000 (10 frames)", name, "all", *r["all"]))
         res = []
         for seed in seeds:
             w = work / f"ycbv_1_2_{seed}"

@@ -46,6 +46,9 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--top-k", type=click.IntRange(min=1), default=None,
               help="Template hypotheses per detection kept after verification; with depth, each goes through ICP "
                    "and the best by depth and image agreement is kept [16].")
+@click.option("--hypotheses", type=click.IntRange(min=1), default=None,
+              help="Poses per detection to write: the CSV keeps the best, the runners-up (best first, at most "
+                   "--top-k) go to OUT's sidecar NAME.hypotheses.csv for `cosy match --hypotheses` [1: no sidecar].")
 @click.option("--verify-top", default=None, metavar="N|auto",
               help="Templates: this many hypotheses per detection scored by rendering them against the image "
                    "(0: template score only) [auto: 64 with ICP on depth, else 48].")
@@ -60,7 +63,8 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
-             depth_refine, refiner_iterations, top_k, verify_top, rgb_refine, templates_dir, providers, batch_size,
+             depth_refine, refiner_iterations, top_k, hypotheses, verify_top, rgb_refine, templates_dir, providers,
+             batch_size,
              overwrite, quiet) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
@@ -74,6 +78,7 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
     refiner_method, refiner_model = _method_or_model(refiner, REFINER_METHODS)
     c = estimate_stage.resolve_conf(conf, coarse=coarse_method, refiner=refiner_method, depth_refine=depth_refine,
                                     refiner_iterations=refiner_iterations, top_k=top_k, verify_top=verify_top,
+                                    hypotheses=hypotheses,
                                     rgb_refine=rgb_refine, providers=providers,
                                     batch_size=batch_size)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,

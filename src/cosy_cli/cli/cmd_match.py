@@ -59,11 +59,18 @@ from .common import dataset_options, user_errors
 @click.option("--cross-label-hypotheses/--no-cross-label-hypotheses", default=None,
               help="Let candidate pairs of grouped labels make RANSAC hypotheses too (default: view-pair poses "
                    "and links from same-label pairs as in the paper, grouped labels only add associations) [off].")
+@click.option("--hypotheses", type=click.IntRange(min=1, max=64), default=None,
+              help="Pose hypotheses per candidate to choose from, read from the candidates' sidecar NAME.hypotheses.csv "
+                   "(cosy estimate --hypotheses N): each detection takes the one that agrees with the other views; "
+                   "candidates.csv of OUT holds the chosen poses [1: the CSV's pose only, as the paper].")
+@click.option("--hypothesis-penalty", type=click.FloatRange(min=0, max=100, max_open=True), default=None,
+              help="With --hypotheses: cost of each hypothesis rank, in units of the inlier threshold, when "
+                   "associations and objects are chosen (a runner-up must agree this much better) [0.5].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, views_per_group, known_cameras: bool,
           threshold_mm, threshold_rel, adaptive_k, weak_links, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
-          label_groups, cross_label_hypotheses, overwrite: bool) -> None:
+          label_groups, cross_label_hypotheses, hypotheses, hypothesis_penalty, overwrite: bool) -> None:
     """Match object candidates across views (CosyPose stage 2): RANSAC per view pair, scene graph.
 
     Writes OUT atomically; skips when OUT is complete (unless --overwrite). Lengths in mm.
@@ -77,7 +84,8 @@ def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, vie
                                  ransac_confidence=ransac_confidence,
                                  min_inliers=min_inliers, score_threshold=score_threshold,
                                  symmetry_steps=symmetry_steps, refit=refit, seed=seed, label_groups=label_groups,
-                                 cross_label_hypotheses=cross_label_hypotheses)
+                                 cross_label_hypotheses=cross_label_hypotheses, hypotheses=hypotheses,
+                                 hypothesis_penalty=hypothesis_penalty)
     match_stage.main(c, dataset, split, candidates, out, overwrite=overwrite, log=click.echo)
 
 

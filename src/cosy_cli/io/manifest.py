@@ -69,15 +69,45 @@ def write_folder_manifest(folder: str | os.PathLike, stage: str, names: Iterable
     return path
 
 
-def write_file_manifest(path: str | os.PathLike, stage: str, data: bytes | None = None) -> Path:
+def write_file_manifest(path: str | os.PathLike, stage: str, data: bytes | None = None,
+                        extra: Mapping[str, bytes] | None = None) -> Path:
     """Record the single-file output ``path`` in its sidecar manifest (atomically). ``data``:
     the bytes about to be written to ``path`` (the manifest can then be written first), else
-    the file as it is on disk."""
+    the file as it is on disk. ``extra``: companion files written beside ``path`` (file name ->
+    their bytes), listed in the same manifest (check them with :func:`verify_companion`)."""
     path = Path(path)
     entry = entry_of_bytes(data) if data is not None else entry_of_file(path)
     side = sidecar_path(path)
-    atomic.write_json(side, _doc(stage, {path.name: entry}))
+    files = {path.name: entry, **{str(k): entry_of_bytes(v) for k, v in (extra or {}).items()}}
+    atomic.write_json(side, _doc(stage, files))
     return side
+
+
+def companion_listed(path: str | os.PathLike, companion: str | os.PathLike) -> bool | None:
+    """Whether the manifest of ``path`` lists the file ``companion`` (beside it): None when no
+    manifest lists ``path`` (a user-made file)."""
+    found = find(path)
+    if found is None:
+        return None
+    return isinstance(found[1]["files"].get(Path(companion).name), dict)
+
+
+def verify_companion(path: str | os.PathLike, companion: str | os.PathLike) -> None:
+    """Check ``companion`` against the manifest of ``path`` that lists it (CosyError on a
+    mismatch or when it is missing; nothing when no manifest lists it)."""
+    found = find(path)
+    companion = Path(companion)
+    if found is None or not isinstance(found[1]["files"].get(companion.name), dict):
+        return
+    m, doc, _ = found
+    want = found[1]["files"][companion.name]
+    stage = str(doc.get("stage") or "the stage")
+    if not companion.is_file():
+        raise CosyError(f"{companion} is missing, but {stage} wrote it (listed in {m}); rerun {stage}")
+    got = entry_of_file(companion)
+    if got["size"] != want.get("size") or got["sha1"] != want.get("sha1"):
+        raise CosyError(f"{companion} changed or truncated since {stage} wrote it (listed in {m}); rerun {stage} "
+                        f"or pass --overwrite there")
 
 
 def remove_file_manifest(path: str | os.PathLike) -> None:

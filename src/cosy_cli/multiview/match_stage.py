@@ -29,10 +29,21 @@ read. Output folder (built atomically: an interrupted run leaves nothing under `
     ``threshold`` (the rule, the estimated relative noise ``residual_scale``, min/max mm) and
     timing; ``label_groups``: the setting, the groups and the model fits behind them.
 ``candidates.csv``
-    A copy of the input candidates (same rows, same order: cand_id = row).
+    A copy of the input candidates (same rows, same order: cand_id = row); with ``hypotheses``
+    > 1 each row holds the pose hypothesis its detection chose (below).
 ``manifest.json``
     sha1 and size of the four files above (:mod:`cosy_cli.io.manifest`): ``cosy refine``
     refuses a file changed or truncated since match wrote it.
+
+Several hypotheses per detection (``hypotheses`` K > 1, beyond the paper): the candidates CSV's
+sidecar ``NAME.hypotheses.csv`` (:mod:`cosy_cli.io.hypotheses`, written by ``cosy estimate
+--hypotheses N`` and listed in its manifest) gives each candidate ranked alternatives; ranks
+0..K-1 all enter the matching as mutually exclusive candidates (see
+:mod:`cosy_cli.multiview.matching`), each detection takes the hypothesis placed in an object
+(unmatched ones keep rank 0), ``matches.csv`` gains a last column ``hyp_rank``, the objects of
+groups.json ``hyp_ranks`` (aligned with ``cand_ids``), groups.json ``hypotheses`` (sidecar path,
+sha1, K, how many chose rank > 0); ``candidates.csv`` holds the chosen poses, so ``cosy refine``
+reads them unchanged. With K = 1 (default) every output is as without hypotheses.
 
 Groups: one per scene holding all its images (sorted by im_id), or with ``views_per_group`` N
 consecutive groups of N images (a last group of a single image joins the previous one).
@@ -96,6 +107,12 @@ CONFS: dict[str, dict] = {
         # False: view-pair poses and links from same-label pairs (as the paper), grouped labels
         # only add associations under them; True: grouped labels' pairs make hypotheses too
         "cross_label_hypotheses": False,
+        # beyond the paper: pose hypotheses per detection to choose from (the candidates CSV's
+        # sidecar NAME.hypotheses.csv written by `cosy estimate --hypotheses N`); 1 = the paper
+        "hypotheses": 1,
+        # with hypotheses: cost of each rank in units of the inlier threshold when associations and
+        # objects are chosen (a runner-up must agree this much better with the other views)
+        "hypothesis_penalty": 0.5,  # on the odd lmo_dev scenes with 5 hypotheses, AR 0: 0.298, 0.5: 0.327, 2: 0.328
     },
 }
 # As published: one candidate pair's hypothesis (no refit), the fixed 2 cm, >= 3 inliers, same label
@@ -112,6 +129,7 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
         "symmetry_steps": lambda v: v >= 1, "n_points": lambda v: v >= 3, "sym_candidates": lambda v: v >= 1,
         "views_per_group": lambda v: v is None or v >= 2, "ransac_confidence": lambda v: 0 < v <= 1,
         "threshold_rel": lambda v: 0 <= v < 10, "adaptive_k": lambda v: 0 <= v < 1000,
+        "hypotheses": lambda v: int(v) == v and 1 <= v <= 64, "hypothesis_penalty": lambda v: 0 <= v < 100,
     }
     for k, ok in checks.items():
         try:
@@ -120,12 +138,14 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
             good = False
         if not good:
             raise CosyError(f"{k} = {base[k]!r} is out of range")
-    for k in ("ransac_iterations", "min_inliers", "symmetry_steps", "n_points", "sym_candidates", "seed"):
+    for k in ("ransac_iterations", "min_inliers", "symmetry_steps", "n_points", "sym_candidates", "seed",
+              "hypotheses"):
         base[k] = int(base[k])
     base["threshold_mm"] = float(base["threshold_mm"])
     base["ransac_confidence"] = float(base["ransac_confidence"])
     base["threshold_rel"] = float(base["threshold_rel"])
     base["adaptive_k"] = float(base["adaptive_k"])
+    base["hypothesis_penalty"] = float(base["hypothesis_penalty"])
     base["weak_links"] = bool(base["weak_links"])
     base["score_threshold"] = float(base["score_threshold"])
     base["refit"] = bool(base["refit"])
@@ -150,7 +170,42 @@ def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, candid
         reasons.append("another dataset or split")
     if Path(candidates_csv).is_file() and doc.get("candidates_sha1") != file_sha1(candidates_csv):
         reasons.append("the candidates file changed")
+    if conf.get("hypotheses", 1) > 1:
+        side = hypotheses_file(candidates_csv)
+        want = (doc.get("hypotheses") or {}).get("sha1")
+        if (None if side is None else file_sha1(side)) != want:
+            reasons.append("the hypotheses file changed")
     return reasons
+
+
+def hypotheses_file(candidates_csv: str | Path) -> Path | None:
+    """The hypotheses sidecar of a candidates CSV (``cands.hypotheses.csv``, see
+    :mod:`cosy_cli.io.hypotheses`) when it exists and belongs to it: a CSV that cosy estimate
+    wrote must list it in its manifest (a sidecar left from an earlier run is ignored)."""
+    from ..io import hypotheses as hyp_io
+
+    side = hyp_io.sidecar_path(candidates_csv)
+    if not side.is_file() or manifest.companion_listed(candidates_csv, side) is False:
+        return None
+    return side
+
+
+def load_hypotheses(candidates_csv: str | Path, n_candidates: int, k: int):
+    """Pose hypotheses 1..k-1 of every candidate from the sidecar: (T (n, k-1, 4, 4), ok (n, k-1)),
+    or None without a sidecar or with k = 1. Rank 0 is always the candidates CSV's row."""
+    from ..io import hypotheses as hyp_io
+
+    side = hypotheses_file(candidates_csv) if k > 1 else None
+    if side is None:
+        return None
+    manifest.verify_companion(candidates_csv, side)
+    det, rank, _, T = hyp_io.read_hypotheses(side, n_candidates)
+    sel = (rank >= 1) & (rank < k)
+    alt = np.tile(np.eye(4), (n_candidates, k - 1, 1, 1))
+    ok = np.zeros((n_candidates, k - 1), dtype=bool)
+    alt[det[sel], rank[sel] - 1] = T[sel]
+    ok[det[sel], rank[sel] - 1] = True
+    return alt, ok
 
 
 def is_complete(out: str | Path) -> bool:
@@ -413,9 +468,42 @@ def _vote(g: dict, res: GroupResult, objs: np.ndarray, score: np.ndarray) -> Non
     g["labels"], g["votes"] = label_groups.vote_labels(res.object_id, objs[idx], score[idx], fit)
 
 
-def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = True):
+def _expand(idx: np.ndarray, view: np.ndarray, T: np.ndarray, hyps):
+    """The candidates ``idx`` of a group (their views ``view``, aligned with idx; T: the poses of
+    all candidates) with their hypotheses, detection-major (rank 0 first): (cand
+    index (h,), rank (h,), view (h,), T (h, 4, 4), det (h,) = position in ``idx``)."""
+    alt, ok = hyps
+    k = alt.shape[1] + 1
+    n = len(idx)
+    has = np.concatenate([np.ones((n, 1), dtype=bool), ok[idx]], 1).reshape(-1)
+    pos = np.repeat(np.arange(n), k)[has]
+    rank = np.tile(np.arange(k), n)[has]
+    TT = np.concatenate([T[idx][:, None], alt[idx]], 1).reshape(-1, 4, 4)[has]
+    return idx[pos], rank, view[pos], TT, pos
+
+
+def _collapse(res: GroupResult, rank: np.ndarray, det: np.ndarray,
+              n: int) -> tuple[GroupResult, np.ndarray, np.ndarray]:
+    """The matching of a group's hypotheses as a matching of its ``n`` detections: each takes
+    the hypothesis placed in an object (at most one is), else its rank 0. Returns (result per
+    detection, chosen hypothesis (n,) as an index into the hypotheses, its rank (n,))."""
+    first = np.flatnonzero(np.r_[True, det[1:] != det[:-1]]) if len(det) else np.zeros(0, np.int64)
+    chosen = first.copy()  # rank 0 (detection-major, rank order)
+    inside = np.flatnonzero(res.object_id >= 0)
+    chosen[det[inside]] = inside
+    return GroupResult(
+        object_id=res.object_id[chosen], pair_views=res.pair_views, n_inliers=res.n_inliers, T_ab=res.T_ab,
+        linked=res.linked, n_hypotheses=res.n_hypotheses, edges=det[res.edges] if len(res.edges) else res.edges,
+        edge_dist=res.edge_dist, edge_pair=res.edge_pair, edge_kept=res.edge_kept, threshold_mm=res.threshold_mm,
+        link_kind=res.link_kind, residual_scale=res.residual_scale,
+        cand_fit=None if res.cand_fit is None else res.cand_fit[chosen]), chosen, rank[chosen]
+
+
+def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = True, hyps=None):
     """Match every group; returns (groups (list of dicts with results, object labels and votes),
-    object_id (n,), group_of (n,), the resolved label groups)."""
+    object_id (n,), group_of (n,), the resolved label groups). ``hyps``: (T (n, k-1, 4, 4), ok
+    (n, k-1)) pose hypotheses 1..k-1 of the candidates (:func:`load_hypotheses`); then each
+    group also has ``hyp_rank`` (rank chosen per candidate) and ``T_chosen`` (their poses)."""
     from threadpoolctl import threadpool_limits
 
     tab = cands.table
@@ -456,6 +544,9 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
         g["result"] = single_view_result(n_k)
         _vote(g, g["result"], objs, score)
         g["time_s"] = 0.0
+        if hyps is not None:
+            g["hyp_rank"] = np.zeros(n_k, dtype=np.int64)
+            g["T_chosen"] = cands.T_cam_obj[g["cand_idx"]]
         object_id[g["cand_idx"]] = g["result"].object_id
         del g["view"], g["T_cw"]
 
@@ -463,10 +554,23 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
         if not batch:
             return
         t0 = time.perf_counter()
-        inputs = [(groups[k]["view"], lab_all[groups[k]["cand_idx"]], cands.T_cam_obj[groups[k]["cand_idx"]],
-                   len(groups[k]["im_ids"]), groups[k]["T_cw"]) for k in batch]
+        if hyps is None:
+            inputs = [(groups[k]["view"], lab_all[groups[k]["cand_idx"]], cands.T_cam_obj[groups[k]["cand_idx"]],
+                       len(groups[k]["im_ids"]), groups[k]["T_cw"]) for k in batch]
+        else:  # every hypothesis a candidate; those of one detection mutually exclusive
+            inputs, expanded = [], []
+            for k in batch:
+                ci, rk, vw, TT, det = _expand(groups[k]["cand_idx"], groups[k]["view"], cands.T_cam_obj, hyps)
+                inputs.append((vw, lab_all[ci], TT, len(groups[k]["im_ids"]), groups[k]["T_cw"], det,
+                               conf["hypothesis_penalty"] * rk))
+                expanded.append((rk, det, TT))
         seeds = [[conf["seed"], groups[k]["scene_id"], groups[k]["group_id"]] for k in batch]
         results = match_groups(inputs, table, params, seeds)
+        if hyps is not None:
+            for q, k in enumerate(batch):
+                rk, det, TT = expanded[q]
+                results[q], chosen, groups[k]["hyp_rank"] = _collapse(results[q], rk, det, len(groups[k]["cand_idx"]))
+                groups[k]["T_chosen"] = TT[chosen]
         dt = (time.perf_counter() - t0) / len(batch)
         for k, res in zip(batch, results):
             groups[k]["result"] = res
@@ -507,11 +611,30 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     return groups, object_id, group_of, resolved
 
 
+def chosen_hypotheses(cands: bop.PoseResults, groups) -> tuple[bop.PoseResults, np.ndarray]:
+    """The candidates with the pose each chose among its hypotheses (rank 0 where it chose none)
+    and the rank chosen (n,)."""
+    rank = np.zeros(len(cands), dtype=np.int64)
+    T = cands.T_cam_obj.copy()
+    for g in groups:
+        if "hyp_rank" in g:
+            rank[g["cand_idx"]] = g["hyp_rank"]
+            T[g["cand_idx"]] = g["T_chosen"]
+    tab = cands.table
+    out = bop.PoseResults.from_arrays(tab["scene_id"], tab["im_id"], tab["obj_id"], tab["score"], T, tab["time"])
+    return out, rank
+
+
 def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands: bop.PoseResults, groups,
-                   object_id, group_of, summary: dict, resolved: "label_groups.Resolved | None" = None) -> None:
+                   object_id, group_of, summary: dict, resolved: "label_groups.Resolved | None" = None,
+                   hyp_file: Path | None = None) -> None:
     tab = cands.table
     ims = tab["im_id"].to_numpy()
-    lines = ["scene_id,group_id,im_id,obj_id,score,cand_id,object_id,object_obj_id"]
+    with_hyp = conf.get("hypotheses", 1) > 1
+    if with_hyp:  # candidates.csv carries the chosen poses (cosy refine reads it)
+        cands, hyp_rank = chosen_hypotheses(cands, groups)
+    lines = ["scene_id,group_id,im_id,obj_id,score,cand_id,object_id,object_obj_id"
+             + (",hyp_rank" if with_hyp else "")]
     sc, ob, scr = tab["scene_id"].to_numpy(), tab["obj_id"].to_numpy(), tab["score"].to_numpy()
     gid = [groups[g]["group_id"] if g >= 0 else -1 for g in group_of]
     obj_label = ob.copy()  # the label of each candidate's object (its own when discarded)
@@ -522,7 +645,8 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
     agree = {(f.a, f.b) for f in (resolved.pairs if resolved is not None else []) if f.frames_agree}
     n_relabelled = 0
     for i in range(len(tab)):
-        lines.append(f"{sc[i]},{gid[i]},{ims[i]},{ob[i]},{scr[i]:.9g},{i},{object_id[i]},{obj_label[i]}")
+        lines.append(f"{sc[i]},{gid[i]},{ims[i]},{ob[i]},{scr[i]:.9g},{i},{object_id[i]},{obj_label[i]}"
+                     + (f",{hyp_rank[i]}" if with_hyp else ""))
     # plain writes: the whole folder is renamed into place at the end (atomic_dir)
     (tmp / "matches.csv").write_text("\n".join(lines) + "\n")
     vlines = ["scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t"]
@@ -550,6 +674,8 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
             lab = int(g["labels"][o])
             entry_o = {"object_id": o, "obj_id": lab,
                        "cand_ids": [int(c) for c in members], "im_ids": [int(ims[c]) for c in members]}
+            if with_hyp:
+                entry_o["hyp_ranks"] = [int(hyp_rank[c]) for c in members]
             own = ob[members]
             if np.any(own != lab):  # members of other labels (label groups): the vote, and their use
                 n_relabelled += int(np.sum(own != lab))
@@ -583,6 +709,13 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
         "label_groups": (resolved.record() if resolved is not None else None),
         "summary": {**summary, "relabelled_candidates": n_relabelled}, "groups": out_groups,
     }
+    if with_hyp:
+        doc["hypotheses"] = {"path": None if hyp_file is None else str(Path(hyp_file).resolve()),
+                             "sha1": None if hyp_file is None else file_sha1(hyp_file),
+                             "per_candidate": conf["hypotheses"],
+                             "chosen_not_rank0": int((hyp_rank > 0).sum()),
+                             "note": "candidates.csv holds the chosen poses; hyp_rank in matches.csv and "
+                                     "hyp_ranks per object say which (0 = the candidates CSV's row)"}
     (tmp / "groups.json").write_text(json.dumps(doc, separators=(",", ":")) + "\n")  # compact: C encoder
     manifest.write_folder_manifest(tmp, "cosy match", OUTPUT_FILES)  # checked by cosy refine
 
@@ -603,7 +736,12 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
     _check_inputs(ds, cands, csv_path, conf["known_cameras"])
     t0 = time.perf_counter()
     label_groups.check_obj_ids(conf["label_groups"], ds.models_info())
-    groups, object_id, group_of, resolved = run(conf, ds, cands, progress=progress)
+    hyp_file = hypotheses_file(csv_path) if conf["hypotheses"] > 1 else None
+    hyps = load_hypotheses(csv_path, len(cands), conf["hypotheses"])
+    if conf["hypotheses"] > 1 and hyps is None:
+        log(f"match: hypotheses = {conf['hypotheses']} but {csv_path} has no hypotheses sidecar "
+            "(cosy estimate --hypotheses N writes one): one pose per candidate")
+    groups, object_id, group_of, resolved = run(conf, ds, cands, progress=progress, hyps=hyps)
     t_match = time.perf_counter() - t0
     times = np.array([g["time_s"] for g in groups]) if groups else np.zeros(0)
     n_obj = sum(g["result"].n_objects for g in groups)
@@ -618,7 +756,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, candidates_cs
         "single_view_groups": int(sum(len(g["im_ids"]) == 1 for g in groups)),
     }
     with atomic.atomic_dir(out, overwrite=overwrite) as tmp:
-        _write_outputs(tmp, conf, ds, csv_path, cands, groups, object_id, group_of, summary, resolved)
+        _write_outputs(tmp, conf, ds, csv_path, cands, groups, object_id, group_of, summary, resolved, hyp_file)
     log(f"match: {summary['groups']} groups, {summary['candidates']} candidates: {kept} kept in {n_obj} objects, "
         f"{summary['discarded']} discarded; {summary['linked_view_pairs']}/{summary['view_pairs']} view pairs linked; "
         f"{summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "

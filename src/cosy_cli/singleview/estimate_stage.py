@@ -22,7 +22,11 @@ else templates; the shipped (or given) refiner if any; ICP when the dataset has 
 summary says which combination ran. Output: a BOP results CSV (scene_id, im_id, obj_id, score,
 R, t mm, time s per image) that ``cosy match`` reads, ``<out>.timing.csv`` (per image: detections
 and seconds per step), ``<out>.json`` (settings, inputs, what ran, totals) and
-``<out name>.manifest.json`` (the CSV's sha1 and size, checked by ``cosy match``).
+``<out name>.manifest.json`` (the CSV's sha1 and size, checked by ``cosy match``). With
+``hypotheses`` N > 1 (``--hypotheses``) also ``<out stem>.hypotheses.csv``: per detection its pose
+(rank 0) and up to N-1 runners-up of the ranking it already made (verification by rendering, or
+depth + image fit with ICP; see :mod:`cosy_cli.io.hypotheses`), listed in the same manifest; the
+CSV itself is unchanged (one pose per detection). ``cosy match --hypotheses`` chooses among them.
 """
 
 from __future__ import annotations
@@ -68,15 +72,16 @@ CONFS = {
         "verify_top": "auto",         # templates: hypotheses scored by rendering (0: none; auto: 64 with ICP, else 48)
         "rgb_refine": "auto",         # search | none | auto (search when no depth refinement runs)
         "image_weight": 1.0,          # with depth and verification: pick by depth fit + this x image score
+        "hypotheses": 1,              # poses per detection written (>1: the verified runners-up in a sidecar CSV)
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 20,
-              "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0},
+              "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 16, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 20,
-                      "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0},
+                      "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1},
 }
 
 
@@ -88,7 +93,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     for k, allowed in choices.items():
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
-    for k in ("refiner_iterations", "top_k", "batch_size", "icp_iterations"):
+    for k in ("refiner_iterations", "top_k", "batch_size", "icp_iterations", "hypotheses"):
         c[k] = int(c[k])
     if c["verify_top"] != "auto":
         try:
@@ -102,6 +107,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError("estimate setting image_weight must be >= 0")
     if c["verify_top"] != "auto" and c["verify_top"] < 0:
         raise CosyError("estimate setting verify_top must be >= 0 (0: no verification by rendering)")
+    if c["hypotheses"] < 1:
+        raise CosyError("estimate setting hypotheses must be >= 1 (1: one pose per detection, no sidecar)")
     if c["refiner_iterations"] < 0 or c["top_k"] < 1 or c["batch_size"] < 1 or c["icp_iterations"] < 1:
         raise CosyError("estimate settings out of range (refiner iterations >= 0, top-k, batch size, ICP iterations >= 1)")
     return c
@@ -148,11 +155,18 @@ clip_boxes = clip_xyxy  # (N, 4) x, y, w, h px -> x1, y1, x2, y2 clipped to the 
 @dataclass
 class ImageEstimate:
     """The chain's result for one image: ``T`` (N, 4, 4) final poses (mm); ``steps``: name ->
-    (N, 4, 4) poses after each step ("coarse", "refiner_1".., "icp"); ``times``: step -> s."""
+    (N, 4, 4) poses after each step ("coarse", "refiner_1".., "icp"); ``times``: step -> s;
+    ``alternatives`` (N, k-1, 4, 4) the other hypotheses the chain ranked (best first, the one
+    that became ``T`` left out; k-1 = 0 without templates), ``alt_score`` (N, k-1) their
+    ranking scores (verification score, or depth + image fit with ICP), ``best_score`` (N,)
+    that of the one that became ``T``."""
 
     T: np.ndarray
     steps: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
+    alternatives: np.ndarray | None = None
+    alt_score: np.ndarray | None = None
+    best_score: np.ndarray | None = None  # (N,) the ranking score of the hypothesis that became T
 
 
 class Estimator:
@@ -247,6 +261,8 @@ class Estimator:
                 h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=c["top_k"])
                 hyp, hyp_score = h.T_cam_obj, h.scores
         k = hyp.shape[1]
+        hs = np.asarray(hyp_score, dtype=np.float64).reshape(N, -1)
+        res.alternatives, res.alt_score, res.best_score = hyp[:, 1:].copy(), hs[:, 1:].copy(), hs[:, 0].copy()
         res.times["coarse"] = time.perf_counter() - t0
         res.steps["coarse"] = hyp[:, 0].copy()
         T = hyp[:, 0].copy()
@@ -271,6 +287,10 @@ class Estimator:
                 fit = r.fit_score.reshape(N, k) + 1e-3 * hyp_score / max(float(np.abs(hyp_score).max()), 1e-9)
             best = fit.argmax(1)
             T = Tk[np.arange(N), best]
+            rk = np.argsort(-fit, axis=1, kind="stable")[:, 1:]  # the others, best fit first
+            res.alternatives = np.take_along_axis(Tk, rk[:, :, None, None], 1)
+            res.alt_score = np.take_along_axis(fit, rk, 1)
+            res.best_score = fit[np.arange(N), best]
             res.times["icp"] = time.perf_counter() - t0
             res.steps["icp"] = T.copy()
         if self.refiner_net is not None and c["refiner_iterations"] > 0:
@@ -355,6 +375,34 @@ def model_sha1(path) -> str:
     return sha1(path)
 
 
+def _alternatives(r: ImageEstimate, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ranking score of each detection's pose (N,), its first ``m`` alternatives (N, m, 4, 4)
+    and their scores (N, m); missing ones (fewer ranked hypotheses) have a NaN score."""
+    N = len(r.T)
+    T = np.tile(np.eye(4), (N, m, 1, 1))
+    s = np.full((N, m), np.nan)
+    if r.alternatives is not None and r.alternatives.shape[1]:
+        k = min(m, r.alternatives.shape[1])
+        T[:, :k], s[:, :k] = r.alternatives[:, :k], r.alt_score[:, :k]
+    s0 = r.best_score if r.best_score is not None else np.zeros(N)
+    return np.asarray(s0, dtype=np.float64), T, s
+
+
+def _hypotheses_text(T: np.ndarray, s0: np.ndarray, alt_T: np.ndarray, alt_s: np.ndarray) -> str:
+    """The sidecar CSV (:mod:`cosy_cli.io.hypotheses`): per detection rank 0 = its CSV row's pose
+    (with the ranking score of the hypothesis it came from), then the alternatives that exist."""
+    from ..io import hypotheses as hyp_io
+
+    n, m = alt_s.shape
+    det = np.repeat(np.arange(n), m + 1)
+    rank = np.tile(np.arange(m + 1), n)
+    allT = np.concatenate([T[:, None], alt_T], 1).reshape(-1, 4, 4)
+    score = np.concatenate([s0[:, None], alt_s], 1).reshape(-1)
+    keep = ~np.isnan(score) | (rank == 0)
+    score = np.nan_to_num(score, nan=0.0)
+    return hyp_io.format_hypotheses(det[keep], rank[keep], score[keep], allT[keep])
+
+
 def output_paths(out: Path) -> tuple[Path, Path]:
     return out.with_suffix(".timing.csv"), out.with_suffix(".json")
 
@@ -402,6 +450,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
     refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
+    n_hyp = int(run_conf.pop("hypotheses", 1))
+    if n_hyp > 1:  # recorded only when used: outputs of earlier versions stay up to date
+        run_conf["hypotheses"] = n_hyp
     if run_conf["depth_refine"] == "icp" and not has_depth:
         raise CosyError("--depth-refine icp needs depth images, and this split has none "
                         "(use --depth-refine none)", path=ds.split_dir)
@@ -435,7 +486,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     est = Estimator(run_conf, db, coarse_model=used_coarse, refiner_model=used_refiner, templates=templates)
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
     groups = dets.groupby(["scene_id", "im_id"]).indices
-    rows_T, rows_meta, timing, steps = [], [], [], {}
+    rows_T, rows_meta, timing, steps, rows_alt = [], [], [], {}, []
     skipped_boxes = 0
     try:
         for sid, im_id in tqdm(images, desc="estimate", unit="image", disable=not progress, dynamic_ncols=True):
@@ -459,6 +510,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             r = est.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy())
             dt = time.perf_counter() - t0
             rows_T.append(r.T)
+            if n_hyp > 1:
+                rows_alt.append(_alternatives(r, n_hyp - 1))
             rows_meta.append(pd.DataFrame({"scene_id": sid, "im_id": im_id, "obj_id": d["obj_id"].to_numpy(),
                                            "score": d["score"].to_numpy(), "time": dt,
                                            "det_index": d.index.to_numpy()}))
@@ -491,7 +544,23 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         timing_df.to_csv(tmp, index=False, float_format="%.6g")
     write_json(doc_path, summary)
     text = bop.format_results(res)
-    manifest.write_file_manifest(out, "cosy estimate", text.encode("utf-8"))  # checked by cosy match
+    from ..io import hypotheses as hyp_io
+
+    hyp_path = hyp_io.sidecar_path(out)
+    extra = {}
+    if n_hyp > 1:  # the runners-up of every detection, rank 0 = its row of the CSV
+        s0 = np.concatenate([a[0] for a in rows_alt]) if rows_alt else np.zeros(0)
+        alt_T = np.concatenate([a[1] for a in rows_alt]) if rows_alt else np.zeros((0, n_hyp - 1, 4, 4))
+        alt_s = np.concatenate([a[2] for a in rows_alt]) if rows_alt else np.zeros((0, n_hyp - 1))
+        hyp_text = _hypotheses_text(T_all, s0, alt_T, alt_s)
+        extra[hyp_path.name] = hyp_text.encode("utf-8")
+        summary["hypotheses_file"] = str(hyp_path)
+    # the manifest first (it lists the sidecar too), then the sidecar, the CSV last
+    manifest.write_file_manifest(out, "cosy estimate", text.encode("utf-8"), extra=extra)  # checked by cosy match
+    if n_hyp > 1:
+        write_text(hyp_path, hyp_text)
+    else:
+        hyp_path.unlink(missing_ok=True)  # a stale sidecar of an earlier run would not match this CSV
     write_text(out, text)  # last: a complete CSV means the whole stage finished
     log(f"estimate: {len(res)} candidates from {n_img} images, {summary['time_per_image_s'] * 1e3:.0f} ms per image "
         f"({summary['time_per_detection_s'] * 1e3:.0f} ms per detection) -> {out}")
