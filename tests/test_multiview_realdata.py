@@ -398,3 +398,41 @@ def test_leftover_candidates_rematched_with_the_adjusted_cameras():
                                           None, None, np.array([120.0])) == []
     # off: the stage setting
     assert refine_stage.resolve_conf(None, rematch="false")["rematch"] is False
+
+
+def test_a_view_keeps_its_candidate_when_the_scene_disagrees(tables, tmp_path):
+    """After matching, one view's candidate of an object is moved 0.8 diameters along its line of
+    sight (a wrong depth the others outvote): that view keeps its own candidate (scored as a
+    fallback) instead of the refined object; every other view gets the refined object.
+    guard_views=false: the scene overrules it."""
+    from cosy_cli.synth import candidates as sc
+
+    csv = tmp_path / "c.csv"
+    sc.main(tables, "test", csv, profile="clean", seed=0, log=quiet)
+    groups, _, _ = _stages(tables, csv, tmp_path / "ok")
+    g = groups["groups"][0]
+    obj = max(g["objects"], key=lambda o: len(o["cand_ids"]))
+    victim = int(obj["cand_ids"][0])
+    m = tmp_path / "m"
+    shutil.copytree(tmp_path / "ok" / "m", m)
+    c = bop.read_results(m / "candidates.csv")
+    t = c.T_cam_obj[victim, :3, 3]
+    diam = bop.read_models_info(tables / "models" / "models_info.json")[int(obj["obj_id"])].diameter
+    c.T_cam_obj[victim, :3, 3] = t * (1 + 0.8 * diam / np.linalg.norm(t))
+    bop.write_results(m / "candidates.csv", c)
+    (m / "manifest.json").unlink()
+    im = int(c.table.im_id[victim])
+    for guard, out in ((True, "r_on"), (False, "r_off")):
+        refine_stage.main(refine_stage.resolve_conf(None, guard_views=guard), tables, "test", m, tmp_path / out,
+                          overwrite=True, log=quiet, progress=False)
+        pred = bop.read_results(tmp_path / out / "predictions.csv")
+        sel = (pred.table.im_id.to_numpy() == im) & (pred.table.obj_id.to_numpy() == int(obj["obj_id"]))
+        best = np.flatnonzero(sel)[np.argmax(pred.table.score.to_numpy()[sel])]
+        if guard:
+            assert np.allclose(pred.T_cam_obj[best], c.T_cam_obj[victim], atol=1e-3)  # its own candidate
+            assert pred.table.score[best] < 1 and not (pred.table.score.to_numpy()[sel] >= 1).any()
+            scene = json.loads((tmp_path / out / "scene.json").read_text())
+            kept = [o for o in scene["groups"][0]["objects"] if o.get("views_keeping_their_candidates")]
+            assert [o["views_keeping_their_candidates"] for o in kept] == [[im]]
+        else:
+            assert pred.table.score[best] >= 1  # the refined object

@@ -39,6 +39,9 @@ Output folder (built atomically):
     diameter), unchanged, with half its score (clipped to [0, 1]) -- strictly below every refined
     prediction, so that a BOP top-k per image and object takes a single-view estimate only where
     the scene has none (objects seen in one view, views that could not be placed). With
+    ``guard_views`` (default), a view whose own candidates of an object all lie farther than
+    ``explained_frac`` x the diameter from the refined object gets no refined row for it: its
+    candidates stay (scene.json ``views_keeping_their_candidates``). With
     ``output`` "scene": the refined rows alone. time = seconds spent on the group.
 ``manifest.json``
     sha1 and size of the two files above (:mod:`cosy_cli.io.manifest`), checked by ``cosy evaluate``.
@@ -90,6 +93,10 @@ DEFAULT_CONF = {
     # under half the loss threshold) in this many views, a view one such candidate; others are
     # dropped (0: off)
     "min_agreeing": 2,
+    # with min_agreeing > 0: a view whose candidates of an object all disagree with the refined
+    # object (centres farther than explained_frac x its diameter) keeps them instead of the
+    # refined prediction
+    "guard_views": True,
     "nms_mm": 0.0,  # merge objects of one label whose centres are closer (0: off)
     # Two solid objects cannot share the space: objects of any labels whose centres are closer
     # than this fraction of the smaller diameter are one physical object (typically a look-alike
@@ -115,6 +122,7 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     base["n_points"] = int(base["n_points"])
     base["symmetry_steps"] = int(base["symmetry_steps"])
     base["rematch"] = base["rematch"] not in (False, "false", "False", 0, "0")
+    base["guard_views"] = base["guard_views"] not in (False, "false", "False", 0, "0")
     for k in ("loss_threshold_px", "nms_mm", "exclusion_frac", "explained_frac", "rematch_depth_frac",
               "rematch_agree_frac"):
         base[k] = float(base[k])
@@ -487,6 +495,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         np.maximum.at(score, cand_obj, c_score[cand_ids])
         err = np.bincount(cand_obj, weights=np.nan_to_num(res.cand_error_px), minlength=len(objs)) / n_c
         o_ids = np.array([int(o["obj_id"]) for o in objs])
+        diam_of = {int(o): ds.models_info()[int(o)].diameter for o in o_ids}
         keep, into = _nms(T_world_obj, o_ids, n_c, score, conf["nms_mm"],
                           np.array([ds.models_info()[int(o)].diameter for o in o_ids]), conf["exclusion_frac"])
         # support: a candidate agrees with the refined scene when its mean reprojection error is
@@ -515,6 +524,16 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                      "T_world_obj": _mat(T_world_obj[k])}
             if len(merged) > 1:
                 entry["merged_object_ids"] = [int(objs[m]["object_id"]) for m in merged if m != k]
+            if conf["min_agreeing"] > 0 and conf["guard_views"]:
+                # a view whose own candidates of this object all lie farther than explained_frac x
+                # the diameter from the refined object keeps them: the scene does not overrule what
+                # a view saw (a consistent mistake of the other views cannot replace a right pose)
+                mk = np.isin(cand_obj, merged)
+                c_cam = T_cam_cand[mk, :3, 3]
+                o_cam = np.einsum("vij,j->vi", np.linalg.inv(Twc), T_world_obj[k][:, 3])[cv[mk], :3]
+                near = np.linalg.norm(c_cam - o_cam, axis=1) < conf["explained_frac"] * diam_of[int(o["obj_id"])]
+                seen, explained = set(cv[mk].tolist()), set(cv[mk][near].tolist())
+                entry["_overruled_im_ids"] = sorted(int(views[x]) for x in seen - explained)
             objects_out.append(entry)
         stats.update({
             "iterations": int(res.iterations), "converged": bool(res.converged),
@@ -574,7 +593,12 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         T_cam_obj = ba.predictions_from_scene(Twc, T_world_obj)  # (V, N', 4, 4)
         for k, v in enumerate(views):
             for j, o in enumerate(objects_out):
-                pred.append((s, v, o["obj_id"], o["score"], T_cam_obj[k, j]))
+                if v not in o.get("_overruled_im_ids", ()):
+                    pred.append((s, v, o["obj_id"], o["score"], T_cam_obj[k, j]))
+    for o in objects_out:  # scene.json says where the object's candidates stay instead
+        keep_views = o.pop("_overruled_im_ids", [])
+        if keep_views:
+            o["views_keeping_their_candidates"] = keep_views
     return {
         "scene_id": s, "group_id": int(g["group_id"]), "gauge_im_id": gauge,
         "cameras": [{"im_id": int(v), "T_world_cam": _mat(Twc[k]), "placed_by": placed_by[v]}
