@@ -194,22 +194,38 @@ def initialise_cameras(im_ids: Sequence[Hashable], pair_poses: Mapping[tuple, np
 
     Returns ({im_id: T_world_cam (4, 4)} in tree order, gauge first; [unplaced im_ids]).
     """
+    edges = []
+    for (a, b), T in pair_poses.items():
+        w = 1.0 if pair_inliers is None else float(pair_inliers.get((a, b), pair_inliers.get((b, a), 0.0)))
+        edges.append((a, b, w, T, None))
+    placed, _, _ = spanning_tree_poses(im_ids, edges, gauge)
+    unplaced = [v for v in im_ids if v not in placed]
+    return placed, unplaced
+
+
+def spanning_tree_poses(im_ids: Sequence[Hashable], edges, gauge: Hashable | None = None):
+    """Chain relative poses over a maximum-weight spanning tree (the rule of
+    :func:`initialise_cameras`).
+
+    ``edges``: (a, b, weight, T_a_b (4, 4, mm), payload) tuples; of several edges between two
+    views the heaviest counts; self-loops and unknown views are ignored. Returns ({im_id:
+    T_world_cam} in tree order, gauge first; {im_id: (the placed view it was reached from,
+    the payload of that edge)} for every placed view but the gauge; the gauge im_id).
+    """
     order = {v: i for i, v in enumerate(im_ids)}
     if len(order) != len(im_ids):
         raise ValueError("im_ids must be unique")
     adj: dict = {v: {} for v in im_ids}
-    for (a, b), T in pair_poses.items():
+    for a, b, w, T, payload in edges:
         if a not in order or b not in order or a == b:
             continue
-        w = 1.0 if pair_inliers is None else float(pair_inliers.get((a, b), pair_inliers.get((b, a), 0.0)))
         T = np.asarray(T, dtype=np.float64)
         if b not in adj[a] or w > adj[a][b][0]:
-            adj[a][b] = (w, T)
-            adj[b][a] = (w, invert(T))
-    # connected components
+            adj[a][b] = (w, T, payload)
+            adj[b][a] = (w, invert(T), payload)
     comp: dict = {}
     comps = []
-    for v in im_ids:
+    for v in im_ids:  # connected components
         if v in comp:
             continue
         stack, members = [v], []
@@ -222,7 +238,7 @@ def initialise_cameras(im_ids: Sequence[Hashable], pair_poses: Mapping[tuple, np
                     comp[y] = len(comps)
                     stack.append(y)
         comps.append(sorted(members, key=order.__getitem__))
-    strength = {v: sum(w for w, _ in adj[v].values()) for v in im_ids}
+    strength = {v: sum(e[0] for e in adj[v].values()) for v in im_ids}
     if gauge is not None:
         if gauge not in order:
             raise ValueError(f"gauge view {gauge!r} is not in im_ids")
@@ -231,20 +247,20 @@ def initialise_cameras(im_ids: Sequence[Hashable], pair_poses: Mapping[tuple, np
         main = max(comps, key=lambda c: (len(c), -order[c[0]]))
         gauge = max(main, key=lambda v: (strength[v], -order[v]))
     placed = {gauge: np.eye(4)}
-    while len(placed) < len(main):
+    via: dict = {}
+    while len(placed) < len(main):  # Prim: the heaviest edge out of the placed set first
         best = None
         for a in placed:
-            for b, (w, T) in adj[a].items():
+            for b, (w, T, payload) in adj[a].items():
                 if b in placed:
                     continue
                 key = (w, -order[a], -order[b])
                 if best is None or key > best[0]:
-                    best = (key, a, b, T)
-        _, a, b, T_a_b = best
+                    best = (key, a, b, T, payload)
+        _, a, b, T_a_b, payload = best
         placed[b] = placed[a] @ T_a_b
-    unplaced = [v for v in im_ids if v not in placed]
-    return placed, unplaced
-
+        via[b] = (a, payload)
+    return placed, via, gauge
 
 
 def _second_moments(points: np.ndarray) -> np.ndarray:

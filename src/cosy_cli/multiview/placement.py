@@ -22,7 +22,7 @@ from typing import Hashable, Sequence
 
 import numpy as np
 
-from ..geometry.poses import invert
+from .bundle_adjustment import spanning_tree_poses
 
 
 @dataclass
@@ -55,52 +55,12 @@ def place_cameras(im_ids: Sequence[Hashable], links: Sequence[Link]):
     text} for every view (``"unplaced"`` for the views not reached); placed_from {im_id: the
     placed view it was reached from, or None}; gauge im_id).
     """
-    order = {v: i for i, v in enumerate(im_ids)}
-    if len(order) != len(im_ids):
-        raise ValueError("im_ids must be unique")
-    adj: dict = {v: {} for v in im_ids}
-    for ln in links:
-        a, b = ln.a, ln.b
-        if a not in order or b not in order or a == b:
-            continue
-        w = float(ln.n_inliers)
-        if b not in adj[a] or w > adj[a][b][0]:
-            T = np.asarray(ln.T_a_b, dtype=np.float64)
-            adj[a][b] = (w, T, ln)
-            adj[b][a] = (w, invert(T), ln)
-    comp: dict = {}
-    comps = []
-    for v in im_ids:
-        if v in comp:
-            continue
-        stack, members = [v], []
-        comp[v] = len(comps)
-        while stack:
-            x = stack.pop()
-            members.append(x)
-            for y in adj[x]:
-                if y not in comp:
-                    comp[y] = len(comps)
-                    stack.append(y)
-        comps.append(sorted(members, key=order.__getitem__))
-    strength = {v: sum(w for w, _, _ in adj[v].values()) for v in im_ids}
-    main = max(comps, key=lambda c: (len(c), -order[c[0]]))
-    gauge = max(main, key=lambda v: (strength[v], -order[v]))
-    placed = {gauge: np.eye(4)}
+    edges = [(ln.a, ln.b, float(ln.n_inliers), ln.T_a_b, ln) for ln in links]
+    placed, via, gauge = spanning_tree_poses(im_ids, edges)
     placed_by = {v: "unplaced" for v in im_ids}
     placed_from: dict = {v: None for v in im_ids}
     placed_by[gauge] = "gauge (world frame)"
-    while len(placed) < len(main):
-        best = None
-        for a in placed:
-            for b, (w, T, ln) in adj[a].items():
-                if b in placed:
-                    continue
-                key = (w, -order[a], -order[b])
-                if best is None or key > best[0]:
-                    best = (key, a, b, T, ln)
-        _, a, b, T_a_b, ln = best
-        placed[b] = placed[a] @ T_a_b
+    for b, (a, ln) in via.items():
         placed_by[b] = describe(ln)
         placed_from[b] = a
     return placed, placed_by, placed_from, gauge
