@@ -311,9 +311,8 @@ def export_onnx(run_dir: str | Path, out: str | Path, opset: int = OPSET, log=pr
     (B, 6, 240, 320), output ``pose`` (B, 9) raw) and write the model card ``out``.md."""
     import warnings
 
-    import onnx
-
     from ..io.atomic import atomic_path, write_text
+    from .onnx import stamp_card
 
     run = read_run(run_dir)
     net = load_network(run)
@@ -326,11 +325,7 @@ def export_onnx(run_dir: str | Path, out: str | Path, opset: int = OPSET, log=pr
             torch.onnx.export(net, (dummy,), str(tmp), input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
                               dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
                               opset_version=opset, dynamo=False, external_data=False)
-        m = onnx.load(str(tmp))
-        entry = m.metadata_props.add()
-        entry.key = METADATA_KEY
-        entry.value = json.dumps(run.card())
-        onnx.save(m, str(tmp))
+        stamp_card(tmp, METADATA_KEY, run.card())
     write_text(out.with_suffix(".md"), model_card(run, out))
     log(f"export: CosyPose {run.kind} network of run {run.run_id} ({run.backbone}, init {run.init_method}, "
         f"objects {run.object_ds_name}) -> {out}")

@@ -34,8 +34,6 @@ def export_onnx(model: PoseNet, path: str | Path, crop_size: tuple[int, int] | N
     ``dynamo=True`` uses the torch.export-based one (needs onnxscript; about 12 s for B0 here),
     same outputs.
     """
-    import onnx
-
     cfg = model.config
     w, h = crop_size or cfg.crop_size
     if (w, h) != tuple(cfg.crop_size):
@@ -55,12 +53,19 @@ def export_onnx(model: PoseNet, path: str | Path, crop_size: tuple[int, int] | N
                 torch.onnx.export(net, (dummy,), str(tmp), input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
                                   dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
                                   opset_version=opset, dynamo=False, external_data=False)
-        m = onnx.load(str(tmp))
-        entry = m.metadata_props.add()
-        entry.key = METADATA_KEY
-        entry.value = json.dumps(cfg.to_dict())
-        onnx.save(m, str(tmp))
+        stamp_card(tmp, METADATA_KEY, cfg.to_dict())
     return path
+
+
+def stamp_card(path: str | Path, key: str, card: dict) -> None:
+    """Store ``card`` (JSON) in the ONNX file's metadata under ``key`` (what :func:`open_session` reads)."""
+    import onnx
+
+    m = onnx.load(str(path))
+    entry = m.metadata_props.add()
+    entry.key = key
+    entry.value = json.dumps(card)
+    onnx.save(m, str(path))
 
 
 def open_session(path: str | Path, metadata_key: str, providers: list[str] | None = None,
