@@ -262,3 +262,114 @@ def test_sigterm_saves_a_checkpoint(tmp_path):
     assert "checkpoint saved at step" in text
     ck = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
     assert ck["step"] >= 20
+
+
+# ------------------------------------------------------------------------------------ warm start, sampling, bench
+def test_warm_start_from_onnx_reproduces_the_exported_network(tmp_path):
+    """The ONNX holds BatchNorms folded into its convs: init_from_onnx recovers a torch model that
+    computes the same outputs (eval mode, and training mode on its calibration batch)."""
+    from cosy_cli.detection.network import OnnxDetector
+    from cosy_cli.detection.train import export_onnx, init_from_onnx
+
+    torch.manual_seed(3)
+    cfg = DetectorConfig(obj_ids=[1, 2, 3], **TINY_NET)
+    src = CenterNet(cfg)
+    with torch.no_grad():  # non-trivial BatchNorms, as after training
+        for m in src.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.uniform_(-0.3, 0.3)
+    path = export_onnx(src.eval(), tmp_path / "src.onnx")
+    rng = np.random.default_rng(0)
+    calib = rng.uniform(0, 1, (8, 3, 48, 64)).astype(np.float32)
+    net = CenterNet(cfg)
+    info = init_from_onnx(net, path, calib)
+    assert info["convs"] == sum(isinstance(m, torch.nn.Conv2d) for m in net.modules())
+    assert info["batchnorms"] == sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+    x = rng.uniform(0, 1, (3, 3, 48, 64)).astype(np.float32)
+    peaks, ltrb = OnnxDetector(path).raw(x)
+    with torch.no_grad():
+        p2, l2 = ExportWrapper(net.eval())(torch.from_numpy(x))
+        h_train, _ = net.train()(torch.from_numpy(calib))
+        h_eval, _ = net.eval()(torch.from_numpy(calib))
+    np.testing.assert_allclose(p2.numpy(), peaks, atol=1e-5)
+    np.testing.assert_allclose(l2.numpy(), ltrb, rtol=1e-4)
+    np.testing.assert_allclose(h_train.numpy(), h_eval.numpy(), atol=1e-3)
+    other = CenterNet(DetectorConfig(obj_ids=[1, 2, 3], **dict(TINY_NET, fpn=16)))
+    with pytest.raises(CosyError, match="shape|architecture"):
+        init_from_onnx(other, path, calib)
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    from cosy_cli.detection.train import load_dataset_objects
+
+    return load_dataset_objects(DATA)
+
+
+def test_class_weights_and_confusable_pairs(meshes):
+    from cosy_cli.detection.data import DetectionSampleGenerator, normalised_weights, pair_table
+
+    m, K, size = meshes
+    gen = DetectionSampleGenerator(m, K, size, (160, 120), seed=0, class_weights={7: 9.0})
+    first = np.array([gen._choose(1)[0][0] for _ in range(2000)])
+    assert abs(np.mean(first == 7) - 9 / 16) < 0.05  # 9 / (9 + 7 x 1)
+    ids, pair = gen._choose(20)
+    assert not pair and len(ids) == 20 and set(ids.tolist()) == set(range(1, 9))  # all objects, then repeats
+    gen = DetectionSampleGenerator(m, K, size, (160, 120), seed=1, confusable=[[6, 7, 3.0], [4, 5]], p_pair=1.0)
+    firsts = [tuple(sorted(gen._choose(int(n))[0][:2].tolist())) for n in np.random.default_rng(0).integers(1, 5, 400)]
+    assert set(firsts) == {(6, 7), (4, 5)} and abs(firsts.count((6, 7)) / 400 - 0.75) < 0.07
+    b = gen.batch(10)  # rendered: the pair shows up together (unless a member is hidden or out of view)
+    cls = {o: k for k, o in enumerate(gen.obj_ids.tolist())}
+    both = [any({cls[a], cls[c]} <= set(lab.tolist()) for a, c in ((6, 7), (4, 5))) for lab in b["labels"]]
+    assert b["images"].shape == (10, 120, 160, 3)
+    assert sum(both) >= 5, b["labels"]
+    gen.close()
+    assert normalised_weights(None, [1, 2]) is None
+    np.testing.assert_allclose(normalised_weights({"2": 3}, [1, 2]), [0.25, 0.75])
+    with pytest.raises(ValueError):
+        normalised_weights({9: 1.0}, [1, 2])
+    with pytest.raises(ValueError):
+        pair_table([[1, 1]], [1, 2])
+
+
+def test_cli_detector_warm_start_and_sampling_options(tmp_path):
+    from cosy_cli.detection.train import DEFAULT_CONF, export_onnx, model_config
+
+    net = CenterNet(model_config(dict(DEFAULT_CONF, input_size=[64, 48]), range(1, 9))).eval()
+    init = export_onnx(net, tmp_path / "init.onnx")
+    out = tmp_path / "run"
+    args = ["train", "detector", "--dataset", str(DATA), "--out", str(out), "--input", "64x48", "--batch-size", "2",
+            "--workers", "0", "--warmup", "1", "--iterations", "1", "--quiet", "--init", str(init),
+            "--class-weights", "7=3,6=2", "--confusable", "6:7:2,4:5"]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    assert "warm start" in r.output
+    ck = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
+    c = ck["config"]
+    assert c["class_weights"] == {"7": 3.0, "6": 2.0} and c["confusable"] == [[6, 7, 2.0], [4, 5]]
+    assert c["p_pair"] == 0.5
+    r = CliRunner().invoke(cli, args[:-6] + ["--iterations", "2", "--resume", "--class-weights", "7=3,6=2",
+                                             "--confusable", "6:7:2,4:5"])  # resumable without --init
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(cli, args[:-6] + ["--overwrite", "--confusable", "6:9"])
+    assert r.exit_code == 2 and "lacks" in r.output
+    r = CliRunner().invoke(cli, args[:-6] + ["--overwrite", "--class-weights", "7:3"])
+    assert r.exit_code == 2 and "OBJ=WEIGHT" in r.output
+
+
+def test_bench_detect_makes_the_seed_set_and_scores_gt_boxes(tmp_path):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_detect
+
+    ds = bench_detect.ensure_seed_set(tmp_path / "held", seed=31337, scenes=1, views=2, objects=4)
+    assert (ds / "test" / "000001" / "scene_gt.json").is_file()
+    s = bench_detect.evaluate(ds, from_gt=True, progress=False)
+    assert s["AP50"] == pytest.approx(1.0) and s["images_run"] == 2
+    assert "none" in bench_detect.confusions_line(s)
+    assert bench_detect.synth_cmd(ds, 7, 6, 6, 8)[-9:] == ["--scenes", "6", "--views", "6", "--objects", "8",
+                                                          "--seed", "7", "--quiet"]

@@ -26,6 +26,34 @@ def _crop(ctx, param, value):
     return [w, h]
 
 
+def _class_weights(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        out = {}
+        for item in value.split(","):
+            k, v = item.split("=")
+            out[int(k)] = float(v)
+        return out
+    except ValueError:
+        raise click.BadParameter(f"expected OBJ=WEIGHT,... such as 6=2,7=2.5, got {value!r}") from None
+
+
+def _pairs(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        out = []
+        for item in value.split(","):
+            parts = item.split(":")
+            if len(parts) not in (2, 3):
+                raise ValueError
+            out.append([int(parts[0]), int(parts[1])] + ([float(parts[2])] if len(parts) == 3 else []))
+        return out
+    except ValueError:
+        raise click.BadParameter(f"expected A:B[:WEIGHT],... such as 6:7:3,4:5, got {value!r}") from None
+
+
 @click.command("train")
 @click.argument("kind", type=click.Choice(["coarse", "refiner", "detector"]))
 @click.option("--dataset", required=True, type=click.Path(path_type=Path),
@@ -39,6 +67,15 @@ def _crop(ctx, param, value):
 @click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
 @click.option("--input", "input_size", callback=_crop, default=None,
               help="Detector input size WIDTHxHEIGHT px, multiples of 16 [320x240] (detector only).")
+@click.option("--init", "init", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Detector only: warm start from an exported detector ONNX of the same architecture (any input "
+                   "size), e.g. the shipped one.")
+@click.option("--class-weights", callback=_class_weights, default=None,
+              help="Detector only: sampling weights of the objects, OBJ=WEIGHT,... (others 1) [uniform].")
+@click.option("--confusable", callback=_pairs, default=None,
+              help="Detector only: look-alike pairs shown side by side, A:B[:WEIGHT],... [none].")
+@click.option("--p-pair", type=click.FloatRange(0, 1), default=None,
+              help="Detector only: probability that an image holds a --confusable pair [0; 0.5 with --confusable].")
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32; detector 16].")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None,
@@ -56,8 +93,8 @@ def _crop(ctx, param, value):
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
-def train(kind, dataset, split, out, backbone, crop, input_size, iterations, batch_size, lr, warmup, schedule, device,
-          workers, seed, checkpoint_every, resume, overwrite, quiet) -> None:
+def train(kind, dataset, split, out, backbone, crop, input_size, init, class_weights, confusable, p_pair, iterations,
+          batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite, quiet) -> None:
     """Train the KIND (coarse or refiner PoseNet, or the 2D detector) on domain-randomised renders
     of the dataset's objects.
 
@@ -72,14 +109,18 @@ def train(kind, dataset, split, out, backbone, crop, input_size, iterations, bat
             raise click.UsageError("--backbone and --crop are for the pose networks; the detector takes --input")
         from ..detection import train as det_train
 
+        if p_pair is None and confusable:
+            p_pair = 0.5
         conf = det_train.resolve_conf(None, input_size=input_size, iterations=iterations, batch_size=batch_size,
                                       lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
-                                      seed=seed, checkpoint_every=checkpoint_every)
+                                      seed=seed, checkpoint_every=checkpoint_every, init=init,
+                                      class_weights=class_weights, confusable=confusable, p_pair=p_pair)
         det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo,
                        progress=not quiet)
         return
-    if input_size is not None:
-        raise click.UsageError("--input is for the detector; the pose networks take --crop")
+    if input_size is not None or init is not None or class_weights or confusable or p_pair is not None:
+        raise click.UsageError("--input, --init, --class-weights, --confusable and --p-pair are for the detector; "
+                               "the pose networks take --crop")
     from ..training import train as train_mod
 
     conf = train_mod.resolve_conf(None, kind=kind, backbone=backbone, crop_size=crop, iterations=iterations,

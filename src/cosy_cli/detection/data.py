@@ -3,7 +3,12 @@ with domain randomisation, rendered straight at the network's input size.
 
 One image (:meth:`DetectionSampleGenerator.batch`):
 
-- objects: 1..``max_objects`` instances of the dataset's objects (distinct while possible);
+- objects: 1..``max_objects`` instances of the dataset's objects (distinct while possible),
+  drawn with probabilities ``class_weights`` (default uniform: class-balanced sampling can favour
+  the objects the detector finds worst); with probability ``p_pair`` the image holds one of the
+  ``confusable`` pairs of look-alike objects (picked with probability proportional to its
+  weight; hard examples), placed side by side on the table (or near each other, at a similar
+  depth, when floating);
 - layout, "table" (probability ``p_table``): the objects rest on the plane z = 0 (each on a
   face of its convex hull picked with probability proportional to the face's area, a random
   yaw) at random places in a disc (footprints kept about apart: from spread out to cluttered),
@@ -106,7 +111,8 @@ class DetectionSampleGenerator(RendererOwner):
 
     def __init__(self, meshes: dict, K: np.ndarray, image_size, input_size=(320, 240), seed=0, *,
                  obj_ids=None, max_objects: int = 10, p_table: float = 0.75, min_visib: float = 0.1,
-                 min_pixels: int = 12, light_groups: int = 4, smooth: bool = True):
+                 min_pixels: int = 12, light_groups: int = 4, smooth: bool = True, class_weights=None,
+                 confusable=None, p_pair: float = 0.0):
         self.meshes = {int(k): v for k, v in meshes.items()}
         self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
         self.K = np.asarray(K, dtype=np.float64)
@@ -120,6 +126,9 @@ class DetectionSampleGenerator(RendererOwner):
         self.min_pixels = int(min_pixels)
         self.light_groups = max(1, int(light_groups))
         self.smooth = smooth
+        self.class_p = normalised_weights(class_weights, self.obj_ids)
+        self.pairs, self.pair_p = pair_table(confusable, self.obj_ids)
+        self.p_pair = float(p_pair) if len(self.pairs) else 0.0
         self.rest = {int(o): _RestPoses(self.meshes[int(o)]) for o in self.obj_ids}
         self.radius = {int(o): float(np.linalg.norm(self.rest[int(o)].hull, axis=1).max()) for o in self.obj_ids}
         self._renderer = None
@@ -137,14 +146,31 @@ class DetectionSampleGenerator(RendererOwner):
         return SceneRenderer(meshes, w, h, znear=10.0, zfar=20_000.0, smooth=self.smooth)
 
     # ------------------------------------------------------------------ scenes
-    def _choose(self, n: int) -> np.ndarray:
+    def _choose(self, n: int) -> tuple[np.ndarray, bool]:
+        """(n object ids, whether the first two are a confusable pair to place side by side)."""
         rng = self.rng
-        first = rng.permutation(self.obj_ids)[:min(n, len(self.obj_ids))]
-        extra = rng.choice(self.obj_ids, size=max(0, n - len(self.obj_ids)))
-        return np.concatenate([first, extra]).astype(np.int64)
+        if self.p_pair > 0 and rng.random() < self.p_pair:
+            pair = self.pairs[rng.choice(len(self.pairs), p=self.pair_p)]
+            pair = pair[rng.permutation(2)]
+            n = max(n, 2)
+            rest = self.obj_ids[~np.isin(self.obj_ids, pair)]
+            p = self.class_p[~np.isin(self.obj_ids, pair)] if self.class_p is not None else None
+            p = None if p is None else p / p.sum()
+            k = min(n - 2, len(rest))
+            first = rng.choice(rest, size=k, replace=False, p=p) if k else rest[:0]
+            extra = rng.choice(self.obj_ids, size=max(0, n - 2 - k), p=self.class_p)
+            return np.concatenate([pair, first, extra]).astype(np.int64), True
+        if self.class_p is None:
+            first = rng.permutation(self.obj_ids)[:min(n, len(self.obj_ids))]
+            extra = rng.choice(self.obj_ids, size=max(0, n - len(self.obj_ids)))
+        else:
+            first = rng.choice(self.obj_ids, size=min(n, len(self.obj_ids)), replace=False, p=self.class_p)
+            extra = rng.choice(self.obj_ids, size=max(0, n - len(self.obj_ids)), p=self.class_p)
+        return np.concatenate([first, extra]).astype(np.int64), False
 
-    def _table_scene(self, ids: np.ndarray):
-        """(T_cam_obj (n, 4, 4), T_cam_world (4, 4)) of objects resting on a table."""
+    def _table_scene(self, ids: np.ndarray, pair: bool = False):
+        """(T_cam_obj (n, 4, 4), T_cam_world (4, 4), kept ids) of objects resting on a table;
+        pair: the second object is placed touching-close to the first."""
         rng = self.rng
         n = len(ids)
         Rs, lifts, radii = zip(*(self.rest[int(o)].sample(rng) for o in ids))
@@ -156,9 +182,14 @@ class DetectionSampleGenerator(RendererOwner):
         slack = rng.uniform(0.75, 1.0)  # footprint radii overestimate: a little overlap of circles is fine
         for i in range(n):
             for attempt in range(60):
-                r = disc * math.sqrt(rng.uniform()) * (1 + attempt / 30)
-                phi = rng.uniform(0, 2 * np.pi)
-                c = np.array([r * math.cos(phi), r * math.sin(phi)])
+                if pair and i == 1 and attempt < 30:  # side by side with the first object
+                    r = slack * (radii[0] + radii[1]) * rng.uniform(1.0, 1.25) * (1 + attempt / 30)
+                    phi = rng.uniform(0, 2 * np.pi)
+                    c = centres[0] + np.array([r * math.cos(phi), r * math.sin(phi)])
+                else:
+                    r = disc * math.sqrt(rng.uniform()) * (1 + attempt / 30)
+                    phi = rng.uniform(0, 2 * np.pi)
+                    c = np.array([r * math.cos(phi), r * math.sin(phi)])
                 if i == 0 or np.all(np.linalg.norm(centres[:i][keep[:i]] - c, axis=1)
                                     >= slack * (radii[:i][keep[:i]] + radii[i])):
                     break
@@ -179,13 +210,19 @@ class DetectionSampleGenerator(RendererOwner):
         T_cam_world = invert(T_world_cam)
         return T_cam_world[None] @ T_world_obj, T_cam_world, ids[keep]
 
-    def _floating_scene(self, ids: np.ndarray, K: np.ndarray):
+    def _floating_scene(self, ids: np.ndarray, K: np.ndarray, pair: bool = False):
         rng = self.rng
         n = len(ids)
         w, h = self.input_size
         z = rng.uniform(250.0, 1200.0, n)
         u = rng.uniform(-0.1 * w, 1.1 * w, n)
         v = rng.uniform(-0.1 * h, 1.1 * h, n)
+        if pair and n >= 2:  # the second object next to the first, at about its depth
+            z[1] = z[0] * rng.uniform(0.9, 1.1)
+            span = (self.radius[int(ids[0])] + self.radius[int(ids[1])]) * K[0, 0] / z[0]
+            phi = rng.uniform(0, 2 * np.pi)
+            u[1] = u[0] + span * rng.uniform(0.6, 1.0) * math.cos(phi)
+            v[1] = v[0] + span * rng.uniform(0.6, 1.0) * math.sin(phi)
         y = (v - K[1, 2]) / K[1, 1]
         x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
         return make_pose(random_rotations(n, rng), np.stack([x, y, np.ones(n)], 1) * z[:, None])
@@ -209,14 +246,14 @@ class DetectionSampleGenerator(RendererOwner):
             K[1, 1] *= f
             K[0, 1] *= f
             Ks.append(K)
-            ids = self._choose(int(rng.integers(1, self.max_objects + 1)))
+            ids, pair = self._choose(int(rng.integers(1, self.max_objects + 1)))
             if rng.random() < self.p_table:
-                T, T_cam_world, ids = self._table_scene(ids)
+                T, T_cam_world, ids = self._table_scene(ids, pair)
                 if rng.random() < 0.85:
                     ids = np.concatenate([ids, [TABLE_ID]])
                     T = np.concatenate([T, T_cam_world[None]])
             else:
-                T = self._floating_scene(ids, K)
+                T = self._floating_scene(ids, K, pair)
             ids_all.append(ids)
             T_all.append(T)
             tile_all.append(np.full(len(ids), b))
@@ -331,6 +368,38 @@ class DetectionSampleGenerator(RendererOwner):
         return out
 
 
+def normalised_weights(weights, obj_ids) -> np.ndarray | None:
+    """Sampling probabilities (len(obj_ids),) of ``weights`` ({obj_id: weight >= 0}; objects not
+    named weigh 1), None for uniform (None or empty)."""
+    if not weights:
+        return None
+    w = np.array([float(weights.get(int(o), weights.get(str(int(o)), 1.0))) for o in obj_ids])
+    unknown = set(int(k) for k in weights) - set(int(o) for o in obj_ids)
+    if unknown or np.any(w < 0) or not np.isfinite(w).all() or w.sum() <= 0:
+        raise ValueError(f"class weights must be >= 0 for known objects {list(map(int, obj_ids))}, got {weights}")
+    return w / w.sum()
+
+
+def pair_table(confusable, obj_ids) -> tuple[np.ndarray, np.ndarray]:
+    """(pairs (P, 2) obj_ids, probabilities (P,)) of ``confusable``: [[a, b], ...] or
+    [[a, b, weight], ...] (weight default 1)."""
+    rows = [] if not confusable else list(confusable)
+    known = set(int(o) for o in obj_ids)
+    pairs, w = [], []
+    for r in rows:
+        a, b = int(r[0]), int(r[1])
+        if a == b or a not in known or b not in known or len(r) not in (2, 3):
+            raise ValueError(f"a confusable pair is two different known objects [a, b] or [a, b, weight], got {r}")
+        pairs.append((a, b))
+        w.append(float(r[2]) if len(r) == 3 else 1.0)
+    if not pairs:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    w = np.array(w)
+    if np.any(w < 0) or w.sum() <= 0:
+        raise ValueError(f"confusable pair weights must be >= 0 and not all 0, got {rows}")
+    return np.array(pairs, np.int64), w / w.sum()
+
+
 # ---------------------------------------------------------------------- torch stream
 def _iterable_base():
     try:
@@ -378,4 +447,5 @@ class DetectionStream(_iterable_base()):
             gen.close()
 
 
-__all__ = ["DetectionSampleGenerator", "DetectionStream", "batch_targets", "scaled_intrinsics"]
+__all__ = ["DetectionSampleGenerator", "DetectionStream", "batch_targets", "scaled_intrinsics", "normalised_weights",
+           "pair_table"]

@@ -59,6 +59,10 @@ DEFAULT_CONF = {
     "max_objects": 10,
     "p_table": 0.75,
     "min_visib": 0.1,
+    "class_weights": None,        # {obj_id: sampling weight} (None: uniform)
+    "confusable": None,           # [[obj_a, obj_b(, weight)], ...] look-alike pairs shown together
+    "p_pair": 0.0,                # probability that an image holds one of the confusable pairs
+    "init": None,                 # warm start: an exported detector ONNX of the same architecture
     "seed": 0,
     "device": "cpu",
     "workers": 0,
@@ -78,8 +82,24 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     for k in ("stride", "fpn", "head", "iterations", "batch_size", "warmup", "max_objects", "seed", "workers",
               "checkpoint_every", "log_every"):
         c[k] = int(c[k])
-    for k in ("lr", "ema", "box_weight", "p_table", "min_visib"):
+    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair"):
         c[k] = float(c[k])
+    try:
+        cw = c["class_weights"]
+        c["class_weights"] = ({str(int(k)): float(v) for k, v in dict(cw).items()} if cw else None)
+        if c["class_weights"] and (min(c["class_weights"].values()) < 0 or sum(c["class_weights"].values()) <= 0):
+            raise ValueError
+        pairs = c["confusable"]
+        c["confusable"] = [[int(r[0]), int(r[1])] + ([float(r[2])] if len(r) == 3 else []) for r in pairs] \
+            if pairs else None
+        if c["confusable"] and any(len(r) not in (2, 3) or r[0] == r[1] for r in c["confusable"]):
+            raise ValueError
+    except (TypeError, ValueError, IndexError, AttributeError):
+        raise CosyError("class_weights must be {obj_id: weight >= 0} (not all 0) and confusable a list of "
+                        "[obj_a, obj_b] or [obj_a, obj_b, weight] pairs of two different objects") from None
+    if not 0 <= c["p_pair"] <= 1:
+        raise CosyError(f"p_pair must be in [0, 1], got {c['p_pair']}")
+    c["init"] = str(c["init"]) if c["init"] else None
     if c["schedule"] not in ("constant", "cosine"):
         raise CosyError(f"schedule must be constant or cosine, not {c['schedule']!r}")
     if c["device"] not in ("cpu", "cuda"):
@@ -113,6 +133,90 @@ def load_dataset_objects(dataset: str | Path):
     from ..synth.scenes import camera_matrix
 
     return meshes, camera_matrix(640, 480), (640, 480)
+
+
+# ---------------------------------------------------------------------------------- warm start
+def init_from_onnx(model, path: str | Path, images) -> dict:
+    """Load the weights of an exported detector (``path``: ONNX of :func:`export_onnx`, whose
+    graph has every BatchNorm folded into its conv) into the torch ``model`` (same architecture,
+    any input size), for a warm start. Returns {"convs": n loaded, "max_abs_diff": ...}.
+
+    The ONNX convs are matched to the model's convs in execution order (shapes checked). A
+    folded conv (W', b') goes back as conv weight W' and a BatchNorm recalibrated on ``images``
+    (B, 3, H, W) float32 [0, 1] (rendered training images): per channel the batch mean mu and
+    variance var of W' x become the running statistics, the BN scale sqrt(var + eps) and shift
+    mu + b'. Then the model computes W' x + b' both in eval mode (running statistics) and in
+    training mode on such batches (batch statistics), i.e. what the ONNX computes."""
+    import onnx
+    import torch
+    from onnx import numpy_helper
+    from torch import nn
+
+    m = onnx.load(str(path))
+    init = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
+    for node in m.graph.node:  # constants in Constant nodes, shared ones behind Identity nodes
+        if node.op_type == "Constant":
+            for a in node.attribute:
+                if a.name == "value":
+                    init[node.output[0]] = numpy_helper.to_array(a.t)
+        elif node.op_type == "Identity" and node.input[0] in init:
+            init[node.output[0]] = init[node.input[0]]
+    onnx_convs = [(init[n.input[1]], init[n.input[2]] if len(n.input) > 2 and n.input[2] else None)
+                  for n in m.graph.node if n.op_type == "Conv"]
+    order: list = []
+    hooks = [mod.register_forward_hook(lambda mod, i, o: order.append(mod))
+             for mod in model.modules() if isinstance(mod, nn.Conv2d)]
+    x = torch.as_tensor(np.asarray(images, np.float32))
+    model.eval()
+    with torch.no_grad():
+        model(x[:1])
+    for h in hooks:
+        h.remove()
+    if len(order) != len(onnx_convs):
+        raise CosyError(f"ONNX has {len(onnx_convs)} convs, the model {len(order)}: not the same architecture",
+                        path=path)
+    bn_of = {}
+    for mod in model.modules():
+        if isinstance(mod, nn.Sequential) and len(mod) >= 2 and isinstance(mod[0], nn.Conv2d) \
+                and isinstance(mod[1], nn.BatchNorm2d):
+            bn_of[mod[0]] = mod[1]
+    biases = {}
+    with torch.no_grad():
+        for conv, (w, b) in zip(order, onnx_convs):
+            if tuple(conv.weight.shape) != tuple(w.shape):
+                raise CosyError(f"ONNX conv of shape {tuple(w.shape)} where the model has {tuple(conv.weight.shape)}",
+                                path=path)
+            conv.weight.copy_(torch.from_numpy(np.array(w, np.float32)))
+            bias = np.zeros(w.shape[0], np.float32) if b is None else b
+            if conv in bn_of:
+                biases[bn_of[conv]] = torch.from_numpy(bias.astype(np.float32))
+            elif conv.bias is not None:
+                conv.bias.copy_(torch.from_numpy(np.array(bias, np.float32)))
+            elif b is not None and np.any(b):
+                raise CosyError("ONNX conv has a bias where the model's conv has none and no BatchNorm", path=path)
+
+    def calibrate(bn, inputs):
+        y = inputs[0]
+        mu = y.mean((0, 2, 3))
+        var = y.var((0, 2, 3), unbiased=False)
+        bn.running_mean.copy_(mu)
+        bn.running_var.copy_(var)
+        bn.weight.copy_(torch.sqrt(var + bn.eps))
+        bn.bias.copy_(mu + biases[bn])
+
+    bns = list(biases)
+    momentum = [bn.momentum for bn in bns]
+    hooks = [bn.register_forward_pre_hook(calibrate) for bn in bns]
+    for bn in bns:
+        bn.momentum = 0.0  # keep the calibrated running statistics
+    model.train()
+    with torch.no_grad():
+        model(x)
+    for h, bn, mo in zip(hooks, bns, momentum):
+        h.remove()
+        bn.momentum = mo
+    model.eval()
+    return {"convs": len(order), "batchnorms": len(bns)}
 
 
 # ---------------------------------------------------------------------------------- training
@@ -150,7 +254,14 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     obj_ids = sorted(meshes)
     record = dict(conf, dataset=str(Path(dataset).resolve()), split=split, obj_ids=obj_ids,
                   camera_K=np.asarray(K).tolist(), image_size=list(image_size))
-    ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite)
+    named = {int(k) for k in conf["class_weights"] or {}} | {int(o) for r in conf["confusable"] or [] for o in r[:2]}
+    unknown = sorted(named - set(obj_ids))
+    if unknown:
+        raise CosyError(f"class_weights / confusable name objects {unknown} that the dataset lacks (it has "
+                        f"{obj_ids})", path=dataset)
+    if conf["init"] and not resume and not Path(conf["init"]).is_file():
+        raise CosyError("warm-start detector (init) not found", path=conf["init"])
+    ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite, resumable=RESUMABLE_CHANGES | {"init"})
     device = loop.select_device(conf, log)
     mcfg = model_config(conf, obj_ids)
     model = CenterNet(mcfg)
@@ -162,6 +273,22 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
         ema.load_state_dict(ckpt["ema"]["state_dict"])
         opt.load_state_dict(ckpt["optimizer"])
         step, samples, last = loop.resume_progress(ckpt, out, LOG_FIELDS)
+
+    data_seed = np.random.SeedSequence([conf["seed"], step])  # a resumed run draws new scenes
+    gen_kw = dict(max_objects=conf["max_objects"], p_table=conf["p_table"], min_visib=conf["min_visib"],
+                  class_weights={int(k): v for k, v in (conf["class_weights"] or {}).items()} or None,
+                  confusable=conf["confusable"], p_pair=conf["p_pair"])
+    if ckpt is None and conf["init"]:  # warm start, BatchNorm recalibrated on rendered images of the run's data
+        calib = DetectionSampleGenerator(meshes, K, image_size, mcfg.input_size, seed=np.random.SeedSequence(
+            [conf["seed"], 7919]), obj_ids=obj_ids, **gen_kw)
+        try:
+            images = batch_targets(calib.batch(32), mcfg)["images"]
+        finally:
+            calib.close()
+        info = init_from_onnx(model, conf["init"], images)
+        ema = copy.deepcopy(model)
+        log(f"train detector: warm start from {conf['init']} ({info['convs']} convs, {info['batchnorms']} "
+            "BatchNorms recalibrated)")
     fmt = torch.channels_last if device.type == "cpu" else torch.contiguous_format
     model.to(device, memory_format=fmt).train()
     ema.to(device).eval()
@@ -170,8 +297,6 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     loop.optimizer_to(opt, device)
     loop.write_config(out, record)
 
-    data_seed = np.random.SeedSequence([conf["seed"], step])  # a resumed run draws new scenes
-    gen_kw = dict(max_objects=conf["max_objects"], p_table=conf["p_table"], min_visib=conf["min_visib"])
     gen, it = None, None
     if conf["workers"] == 0:
         gen = DetectionSampleGenerator(meshes, K, image_size, mcfg.input_size, seed=data_seed, obj_ids=obj_ids,
@@ -289,6 +414,22 @@ def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset
     return path
 
 
+def _sampling_lines(c: dict) -> list[str]:
+    """Model-card lines of the warm start and the class / pair sampling of a run's config."""
+    lines = []
+    if c.get("init"):
+        lines.append(f"- warm start: the weights of `{Path(c['init']).name}` (BatchNorms recalibrated on rendered "
+                     "images), then the steps above")
+    if c.get("class_weights"):
+        weights = sorted(c["class_weights"].items(), key=lambda kv: int(kv[0]))
+        lines.append("- class-balanced sampling, object weights: " + ", ".join(f"{k}: {v:g}" for k, v in weights))
+    if c.get("confusable") and c.get("p_pair", 0) > 0:
+        lines.append(f"- hard examples: {c['p_pair']:.0%} of the images hold a pair of look-alikes side by side, "
+                     "pairs (weight): " + ", ".join(f"{r[0]}-{r[1]}" + (f" ({r[2]:g})" if len(r) > 2 else "")
+                                                    for r in c["confusable"]))
+    return lines
+
+
 def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print) -> Path:
     """Export a detector run (its EMA weights) to ONNX ``out`` and write the model card next to
     it (same name, .md): objects, input size, architecture, training, loss, accuracy."""
@@ -322,6 +463,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"{c['min_visib']:g} visible ignored",
         f"- training: {ck['step']} steps, {ck['samples']} images, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
+        *_sampling_lines(c),
         f"- final training loss (last logged mean): {loss_txt}",
     ], ck, accuracy, log)
     return out
