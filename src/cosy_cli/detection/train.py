@@ -447,7 +447,8 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     loop.write_model_card(out, [
         f"# {out.name}: cosy 2D object detector",
         "",
-        f"- objects (category_id = BOP obj_id): {', '.join(str(o) for o in cfg.obj_ids)} (models of {c['dataset']})",
+        f"- objects (category_id = BOP obj_id): {', '.join(str(o) for o in cfg.obj_ids)} "
+        f"(models of the dataset `{Path(c['dataset']).name}`)",
         f"- input: RGB resized to {w} x {h} px (width x height), values in [0, 1]; any image size is resized "
         "by the runner (`cosy_cli.detection.network.OnnxDetector`)",
         f"- architecture: anchor-free centre-heatmap detector (CenterNet-style): plain conv + BatchNorm + ReLU "
