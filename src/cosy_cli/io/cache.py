@@ -9,6 +9,17 @@ from typing import Callable, Iterable
 from ..errors import CosyError
 
 
+def user_cache_dir(kind: str) -> Path:
+    """cosy's per-user cache folder for ``kind`` (e.g. "meshes"): ``$COSY_CACHE_DIR/kind``, else
+    ``$XDG_CACHE_HOME/cosy/kind``, else ``~/.cache/cosy/kind`` (not created here)."""
+    import os
+
+    root = os.environ.get("COSY_CACHE_DIR")
+    if not root:
+        root = str(Path(os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")) / "cosy")
+    return Path(root) / kind
+
+
 def file_sha1(path: str | Path) -> str:
     h = hashlib.sha1()
     with open(path, "rb") as f:

@@ -217,13 +217,9 @@ _memo: dict[str, tuple] = {}
 def cache_dir() -> Path:
     """Where fits are kept: ``$COSY_CACHE_DIR/label_groups`` (default ``$XDG_CACHE_HOME/cosy``,
     else ``~/.cache/cosy``)."""
-    import os
+    from ..io.cache import user_cache_dir
 
-    root = os.environ.get("COSY_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-        root = str(Path(xdg) / "cosy")
-    return Path(root) / "label_groups"
+    return user_cache_dir("label_groups")
 
 
 def _models_key(ds, rel: float) -> str:

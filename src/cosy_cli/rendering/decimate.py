@@ -15,7 +15,6 @@ of a decimated copy in a process says so once (a :func:`~cosy_cli.errors.warn` l
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import numpy as np
@@ -27,11 +26,9 @@ _memo: dict[str, object] = {}
 
 def cache_dir() -> Path:
     """Where decimated copies are kept (created on first write)."""
-    root = os.environ.get("COSY_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-        root = str(Path(xdg) / "cosy")
-    return Path(root) / "meshes"
+    from ..io.cache import user_cache_dir
+
+    return user_cache_dir("meshes")
 
 
 def _visual_arrays(mesh) -> dict[str, np.ndarray]:
