@@ -222,14 +222,16 @@ _PLY_TYPES = {
 }
 
 
-def read_ply_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Vertices (V, 3) and triangles (F, 3) of a PLY file (binary or ASCII), read with numpy.
+def read_ply_mesh(path: str | Path, data: bytes | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (V, 3) and triangles (F, 3) of a PLY file (binary or ASCII), read with numpy
+    (``data``: the file's bytes when the caller has already read them).
 
     Handles the common layouts (scalar vertex properties, triangle faces as one list property).
     Anything else raises ``ValueError`` (callers fall back to trimesh).
     """
     path = Path(path)
-    data = path.read_bytes()
+    if data is None:
+        data = path.read_bytes()
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise ValueError("not a PLY file")
@@ -333,8 +335,9 @@ def model_points(path: str | Path, n_points: int, seed: int = 0) -> np.ndarray:
     try:
         if path.suffix.lower() != ".ply":
             raise ValueError("not a PLY")
-        check_ply_data(path)  # CosyError when the file holds less than its header declares
-        V, F = read_ply_mesh(path)
+        data = path.read_bytes()  # read once: checked against its header, then parsed
+        check_ply_data(path, data)  # CosyError when the file holds less than its header declares
+        V, F = read_ply_mesh(path, data)
     except (ValueError, KeyError, IndexError, UnicodeDecodeError):
         mesh = load_mesh(path)
         V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
