@@ -101,6 +101,14 @@ def test_sidecar_path_and_round_trip(tmp_path):
     p.write_text("det_id,rank,score,R,t\n0,0,1,1 0 0 0 1 0 0 0,1 2 3\n")
     with pytest.raises(CosyError, match="row 1"):
         hyp_io.read_hypotheses(p, 3)
+    # rotations as in every BOP reader: within 0.05 replaced by the nearest one, beyond an error
+    p.write_text("det_id,rank,score,R,t\n0,0,1,1.01 0 0 0 1 0 0 0 1,1 2 3\n")
+    with pytest.warns(UserWarning, match="nearest rotation"):
+        T3 = hyp_io.read_hypotheses(p, 3)[3]
+    assert np.allclose(T3[0, :3, :3], np.eye(3), atol=1e-9)
+    p.write_text("det_id,rank,score,R,t\n0,0,1,1 0 0 0 1 0 0 0 1,1 2 3\n0,1,1,1.2 0 0 0 1 0 0 0 1,1 2 3\n")
+    with pytest.raises(CosyError, match="row 2"):
+        hyp_io.read_hypotheses(p, 3)
 
 
 def test_det_without_alternatives_is_bit_identical(tables, tmp_path):

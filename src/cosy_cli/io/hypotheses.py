@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CosyError
+from .bop import clean_rotations, repair_rotations
 
 COLUMNS = ("det_id", "rank", "score", "R", "t")
 SUFFIX = ".hypotheses.csv"
@@ -34,8 +35,6 @@ def sidecar_path(candidates_csv: str | Path) -> Path:
 
 def format_hypotheses(det_id, rank, score, T_cam_obj) -> str:
     """The CSV text of hypotheses (arrays of equal length; T_cam_obj (n, 4, 4), t in mm)."""
-    from .bop import clean_rotations
-
     T = np.asarray(T_cam_obj, dtype=np.float64).reshape(-1, 4, 4)
     R = clean_rotations(T[:, :3, :3]).reshape(-1, 9).tolist() if len(T) else []
     t = T[:, :3, 3].tolist()
@@ -59,7 +58,7 @@ def read_hypotheses(path: str | Path, n_candidates: int | None = None):
         raise CosyError(f"cannot read the hypotheses file ({e})", path=path) from None
     if not lines or [c.strip() for c in lines[0].split(",")] != list(COLUMNS):
         raise CosyError(f"expected the header {','.join(COLUMNS)}", path=path, where="row 0 (header)")
-    det, rank, score, T = [], [], [], []
+    det, rank, score, T, rows = [], [], [], [], []
     for k, line in enumerate(lines[1:], 1):
         if not line.strip():
             continue
@@ -81,15 +80,14 @@ def read_hypotheses(path: str | Path, n_candidates: int | None = None):
             raise CosyError(f"det_id {d} / rank {r} out of range (det_id: a data row of the candidates CSV, 0.."
                             f"{'' if n_candidates is None else n_candidates - 1}; rank >= 0)",
                             path=path, where=f"row {k}")
-        R = R.reshape(3, 3)
-        if np.abs(R.T @ R - np.eye(3)).max() > 0.05 or np.linalg.det(R) < 0:
-            raise CosyError("R is not a rotation", path=path, where=f"row {k}")
         M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R, t
-        det.append(d), rank.append(r), score.append(s), T.append(M)
+        M[:3, :3], M[:3, 3] = R.reshape(3, 3), t
+        det.append(d), rank.append(r), score.append(s), T.append(M), rows.append(k)
     det, rank = np.array(det, dtype=np.int64), np.array(rank, dtype=np.int64)
     score = np.array(score, dtype=np.float64)
     T = np.stack(T) if T else np.zeros((0, 4, 4))
+    # as every BOP reader: nearest rotation within the tolerance (one warning), else an error naming the row
+    T[:, :3, :3] = repair_rotations(T[:, :3, :3], lambda i: f"row {rows[i]}", path=path)[0]
     o = np.lexsort((rank, det))
     det, rank, score, T = det[o], rank[o], score[o], T[o]
     dup = np.flatnonzero((det[1:] == det[:-1]) & (rank[1:] == rank[:-1]))
