@@ -513,6 +513,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 n_unsupported += 1
         view_ok = np.zeros(len(views), dtype=bool)
         view_ok[cv[agree & np.isin(cand_obj, np.flatnonzero(keep))]] = True
+        T_cam_world = np.linalg.inv(Twc)  # (V, 4, 4): the views' extrinsics, for the view guard
         for k, o in enumerate(objs):
             if not keep[k]:
                 continue
@@ -530,7 +531,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 # a view saw (a consistent mistake of the other views cannot replace a right pose)
                 mk = np.isin(cand_obj, merged)
                 c_cam = T_cam_cand[mk, :3, 3]
-                o_cam = np.einsum("vij,j->vi", np.linalg.inv(Twc), T_world_obj[k][:, 3])[cv[mk], :3]
+                o_cam = np.einsum("vij,j->vi", T_cam_world, T_world_obj[k][:, 3])[cv[mk], :3]
                 near = np.linalg.norm(c_cam - o_cam, axis=1) < conf["explained_frac"] * diam_of[int(o["obj_id"])]
                 seen, explained = set(cv[mk].tolist()), set(cv[mk][near].tolist())
                 entry["_overruled_im_ids"] = sorted(int(views[x]) for x in seen - explained)
