@@ -699,8 +699,11 @@ def response_maps(rgb: np.ndarray, box: np.ndarray, params: MatchParams) -> np.n
 
 def score_templates(t: ObjectTemplates, responses: np.ndarray, params: MatchParams) -> np.ndarray:
     """(T,) float32 mean response in [0, 1] of every template of ``t`` to response maps (8, S, S) uint8."""
+    import cv2
+
     idx = t.grid_indices(params.grid, params.pad)
-    total = np.take(responses.reshape(-1), idx).sum(axis=1, dtype=np.uint16 if idx.shape[1] <= 257 else np.uint32)
+    gathered = np.take(responses.reshape(-1), idx)  # (T, F) uint8
+    total = cv2.reduce(gathered, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).reshape(-1)  # exact, ~15x numpy's sum
     return total.astype(np.float32) / np.float32(255 * idx.shape[1])
 
 
@@ -766,12 +769,23 @@ def poses_from_templates(t: ObjectTemplates, index: np.ndarray, K: np.ndarray, b
     pred = t.box_size[index].astype(np.float64) * (np.array([K[0, 0], K[1, 1]]) / t.focal)
     dist = _distance_update(np.full(index.shape, t.render_distance), pred, obs, depth_from)
     hull = t.hull.astype(np.float64)
-    for _ in range(refine if len(hull) else 0):
-        cam = hull @ np.swapaxes(R, -1, -2) + (rhat * dist[..., None])[..., None, :]  # (..., P, 3)
-        z = np.maximum(cam[..., 2], 1e-6)
-        uv = np.stack([K[0, 0] * cam[..., 0] / z + K[0, 1] * cam[..., 1] / z, K[1, 1] * cam[..., 1] / z], -1)
-        pred = np.maximum(uv.max(-2) - uv.min(-2), 1e-6)
-        dist = _distance_update(dist, pred, obs, depth_from)
+    if refine and len(hull) and index.size:
+        shape = index.shape
+        m = index.size
+        # the rotated hull of every pose in one product: (3, P, m) camera axes x hull points x poses
+        X, Y, Z = np.moveaxis((hull @ R.reshape(m * 3, 3).T).reshape(len(hull), m, 3), -1, 0)
+        rh = rhat.reshape(m, 3)
+        ob = np.broadcast_to(obs, shape + (2,)).reshape(m, 2)
+        d = dist.reshape(m)
+        for _ in range(refine):
+            c = rh * d[:, None]
+            z = np.maximum(Z + c[:, 2], 1e-6)
+            y = (Y + c[:, 1]) / z
+            u = K[0, 0] * ((X + c[:, 0]) / z) + K[0, 1] * y
+            v = K[1, 1] * y
+            pred = np.maximum(np.stack([u.max(0) - u.min(0), v.max(0) - v.min(0)], -1), 1e-6)
+            d = _distance_update(d, pred, ob, depth_from)
+        dist = d.reshape(shape)
     return make_pose(R, rhat * dist[..., None])
 
 

@@ -33,14 +33,20 @@ image), each term in [0, 1]:
 
 score = sum of the weighted terms / sum of the weights used.
 
-Cost (2-core CPU, llvmpipe): one 64 x 64 render of a 3000-face copy costs ~0.4 ms, about as much
-as all the terms of that hypothesis together (they are computed only at the rendered edge and
-silhouette pixels, gathered by flat index). :meth:`Verifier.rank` therefore scores all hypotheses
-with a coarser copy (``rank_faces`` faces, 1000) and re-scores only each detection's best
-``rank_keep`` (8) with the ``max_faces`` copy; these stay ahead in the ranking. On the odd LM-O
-dev scenes this cascade, 48 instead of 64 hypotheses and 3 x 16 instead of 4 x 24 search samples
-together cost 0.006 AR (MSSD, MSPD) (0.317 -> 0.311) for 0.54x the time (side by side, one run);
-see benchmarks/bench_realdata_singleview.py --sweep for each step's cost.
+Cost (2-core CPU, llvmpipe). Rendering dominates: llvmpipe's triangle setup grows with the faces
+drawn, so every render uses a decimated copy, lit per vertex (``shading``, see
+:class:`~cosy_cli.rendering.SceneRenderer`), read back as one RGBA attachment (the mask is its
+alpha). The terms are computed only at the rendered edge and silhouette pixels, gathered by flat
+index (colours as (3, P) rows, the silhouette's box from its sorted pixel list).
+:meth:`Verifier.rank` scores all hypotheses with a coarse copy (``rank_faces``, 600) and re-scores
+only each detection's best ``rank_keep`` (8) with the ``max_faces`` (3000) copy; these stay ahead
+in the ranking. On the odd LM-O dev scenes the cascade (then 1000 faces), 48 instead of 64
+hypotheses and 3 x 16 instead of 4 x 24 search samples together cost 0.006 AR (MSSD, MSPD)
+(0.317 -> 0.311) for 0.54x the time; the 600-face first pass then kept the AR (odd 0.312, even
+0.304 with the search, 0.365 with the contour alignment). With the rendering and scoring
+speed-ups the chain takes ~0.65x the time of the same settings before them (side by side:
+benchmarks/bench_stage1_speed.py; each setting's cost: benchmarks/bench_realdata_singleview.py
+--sweep).
 
 Refinement (:meth:`Verifier.refine`): a local random search in the crop's camera. Each round
 perturbs the current best pose of every detection ``samples`` times: rotation by a random axis x
@@ -73,7 +79,7 @@ class VerifyConf:
     crop: int = 64                 # crop side, px
     margin: float = 0.2            # window = detection box grown by this x its larger side on each side
     max_faces: int = 3000          # rendering uses a decimated copy of at most this many faces
-    rank_faces: int = 1000         # > 0: rank() first scores all hypotheses with a coarser copy (this many faces) ...
+    rank_faces: int = 600          # > 0: rank() first scores all hypotheses with a coarser copy (this many faces) ...
     rank_keep: int = 8             # ... and re-scores only each detection's best this many with max_faces
     edge_tol: float = 2.5          # crop px: an edge pixel this far from an image edge scores 0
     colour_tol: float = 0.25       # RGB distance (0..1 per channel) at which a pixel scores 0
@@ -93,8 +99,52 @@ class VerifyConf:
     sigma_px: float = 2.0          # crop px
     sigma_depth: float = 0.0       # relative; 0: the depth stays the box's (barely observable in a small crop)
     shrink: float = 0.6
-    refine_faces: int = 0          # > 0: the search renders copies of at most this many faces (0: max_faces)
+    refine_faces: int = 0          # > 0: the search renders copies of at most this many faces (0: max_faces; 1500:
+                                   # ~0.6x the search's time, rotations within 15 deg -0.007 on LM-O odd and even)
     seed: int = 0
+    shading: str = "vertex"        # renders lit per vertex ("pixel": per fragment; the same colours to 1 grey level)
+
+
+def _split_flat(i: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(i // size, i % size) of non-negative int64 indices (shifts when size is a power of two)."""
+    if size & (size - 1) == 0:
+        k = size.bit_length() - 1
+        return i >> k, i & (size - 1)
+    q = i // size
+    return q, i - q * size
+
+
+class _Segments:
+    """Sums per hypothesis of values listed hypothesis by hypothesis (``counts`` (n,) values each, in
+    order): one sequential float64 pass (np.add.reduceat) instead of a scattered bincount."""
+
+    def __init__(self, counts: np.ndarray):
+        counts = np.asarray(counts, dtype=np.int64)
+        self.n = len(counts)
+        self.nonempty = counts > 0
+        end = np.cumsum(counts)
+        self.first = (end - counts)[self.nonempty]
+        self.last = end[self.nonempty] - 1
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.n)
+        if len(self.first):
+            out[self.nonempty] = np.add.reduceat(values, self.first, dtype=np.float64)
+        return out
+
+
+_TAN_BIN_EDGES = np.tan((np.arange(4) + 0.5) * np.pi / 8).astype(np.float32)  # 11.25, 33.75, 56.25, 78.75 deg
+
+
+def _orientation_bins_of(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """orientation_bins(arctan2(gy, gx)) (:func:`~cosy_cli.singleview.templates.orientation_bins`:
+    bins 0..7 over 0..180 deg, bin b centred on b x 22.5 deg) by comparisons of |gy| with tan x |gx|
+    instead of an arctangent (the same bins but at exact ties)."""
+    a, b = np.abs(gx), np.abs(gy)
+    k = (b > _TAN_BIN_EDGES[0] * a).astype(np.intp)  # bin of the angle folded into [0, 90] deg
+    for t in _TAN_BIN_EDGES[1:]:
+        k += b > t * a
+    return np.where((gx < 0) != (gy < 0), (8 - k) & 7, k)  # opposite signs: 180 deg - the folded angle
 
 
 def _rodrigues_batch(w: np.ndarray) -> np.ndarray:
@@ -134,8 +184,20 @@ def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf) -
     Kc = crop_intrinsics(K, win, (S, S))
     src = np.asarray(rgb)
     scale = S / side
-    if scale < 0.7:  # anti-alias when shrinking
-        src = cv2.GaussianBlur(src, (0, 0), 0.5 / scale)
+    if scale < 0.7:  # anti-alias when shrinking: blur only the window and a margin beyond the kernel
+        sigma = 0.5 / scale
+        r = int(math.ceil(4 * sigma)) + 2
+        H, W = src.shape[:2]
+        X0, Y0 = max(int(math.floor(win[0])) - r, 0), max(int(math.floor(win[1])) - r, 0)
+        X1, Y1 = min(int(math.ceil(win[2])) + r, W), min(int(math.ceil(win[3])) + r, H)
+        if X1 > X0 and Y1 > Y0 and (X1 - X0 < W or Y1 - Y0 < H):
+            # the same pixels as blurring the whole image where the warp samples (the same image frame,
+            # so that the warp's fixed-point coordinates are unchanged too)
+            blurred = cv2.GaussianBlur(np.ascontiguousarray(src[Y0:Y1, X0:X1]), (0, 0), sigma)
+            src = src.copy()
+            src[Y0:Y1, X0:X1] = blurred
+        else:
+            src = cv2.GaussianBlur(src, (0, 0), sigma)
     crop = cv2.warpAffine(src, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     edges = np.zeros((S, S), np.uint8)
     for c in range(3):
@@ -212,7 +274,8 @@ class Verifier:
                     self._coarse[o.obj_id] = coarser
                 meshes[o.obj_id] = render_copy(m, max_faces if coarser else self.conf.max_faces)
             S = self.conf.crop
-            self._renderers[max_faces] = SceneRenderer(meshes, S, S, znear=1.0, zfar=100_000.0, max_faces=None)
+            self._renderers[max_faces] = SceneRenderer(meshes, S, S, znear=1.0, zfar=100_000.0, max_faces=None,
+                                                       shading=self.conf.shading)
         return self._renderers[max_faces]
 
     @property
@@ -244,81 +307,97 @@ class Verifier:
         pixels, silhouette pixels), gathered as flat index arrays."""
         c = self.conf
         S = c.crop
+        SS = S * S
         n = len(T)
         if n == 0:
             return (np.zeros(0), {}) if terms else np.zeros(0)
         det = np.asarray(det)
         udet, ridx = np.unique(det, return_inverse=True)  # the observations used, and each hypothesis' row
+        U = len(udet)
         Ks = np.stack([obs[d].K for d in udet])[ridx]
         ren = self.renderer if max_faces is None else self._renderer_with(int(max_faces))
-        out = ren.render_crops(Ks, [int(i) for i in obj_ids], T, (S, S), with_depth=False)
-        mask = out.instance >= 0  # (n, S, S)
-        area = np.count_nonzero(mask, axis=(1, 2)).astype(np.float64)
+        out = ren.render_crops(Ks, [int(i) for i in obj_ids], T, (S, S), with_depth=False, with_instance=False)
+        # one 32-bit word per pixel (RGBA, alpha 255 on the object): 0 exactly off the silhouette
+        px = out.rgba.reshape(n * SS, 4).view(np.uint32).reshape(-1)
+        mask = px != 0
+        fm = np.flatnonzero(mask)  # flat indices b * S * S + y * S + x of the silhouette pixels (sorted)
+        mb, mpix = _split_flat(fm, SS)
+        area = np.bincount(mb, minlength=n).astype(np.float64)
         has = area > 0
-        rgb8 = out.rgb
-        g = rgb8[..., 0].astype(np.float32)
-        g += rgb8[..., 1]
-        g += rgb8[..., 2]
+        sums = _Segments(area)  # per-hypothesis sums over the silhouette pixels (contiguous runs of fm)
+        my, mx = _split_flat(mpix, S)
+        rgba = out.rgba
+        g = rgba[..., 0].astype(np.float32)
+        g += rgba[..., 1]
+        g += rgba[..., 2]
         g *= np.float32(1.0 / 765.0)  # grey level of the render, 0..1
-        # edges of the render: the outline and colour edges (central differences, 0 on the border)
-        pad = np.pad(mask, ((0, 0), (1, 1), (1, 1)))
-        inner = pad[:, :-2, 1:-1] & pad[:, 2:, 1:-1] & pad[:, 1:-1, :-2] & pad[:, 1:-1, 2:]
-        E = mask & ~inner
-        gx = np.zeros_like(g)
-        gy = np.zeros_like(g)
-        np.subtract(g[:, :, 2:], g[:, :, :-2], out=gx[:, :, 1:-1])
-        np.subtract(g[:, 2:], g[:, :-2], out=gy[:, 1:-1])
-        E |= inner & (gx * gx + gy * gy > np.float32(0.08 ** 2))
-        fe = np.flatnonzero(E)  # flat indices b * S * S + y * S + x of the edge pixels
-        eb, rem = np.divmod(fe, S * S)
-        ey, ex = np.divmod(rem, S)
+        gf = g.reshape(-1)
+        # edges of the render: the outline (a 4-neighbour off the silhouette or off the crop) and,
+        # inside, colour edges (central differences of the grey level)
+        inner = (mx > 0) & (mx < S - 1) & (my > 0) & (my < S - 1)
+        ii = np.flatnonzero(inner)
+        fi = fm.take(ii)
+        inner[ii] = mask.take(fi - 1) & mask.take(fi + 1) & mask.take(fi - S) & mask.take(fi + S)
+        ii = np.flatnonzero(inner)
+        fi = fm.take(ii)
+        gxi = gf.take(fi + 1) - gf.take(fi - 1)
+        gyi = gf.take(fi + S) - gf.take(fi - S)
+        is_edge = ~inner
+        is_edge[ii] = gxi * gxi + gyi * gyi > np.float32(0.08 ** 2)
+        ei = np.flatnonzero(is_edge)
+        fe, eb, rem, ey, ex = fm.take(ei), mb.take(ei), mpix.take(ei), my.take(ei), mx.take(ei)
         ne = np.bincount(eb, minlength=n).astype(np.float64)
+        esums = _Segments(ne)  # per-hypothesis sums over the edge pixels
         if c.w_edge > 0:
             dist = np.stack([obs[d].dist for d in udet])
-            e_score = np.bincount(eb, np.maximum(0.0, 1.0 - dist.reshape(-1)[ridx[eb] * (S * S) + rem] / c.edge_tol),
-                                  minlength=n) / np.maximum(ne, 1)
+            e_score = esums(np.maximum(0.0, 1.0 - dist.reshape(-1).take(ridx[eb] * SS + rem) / c.edge_tol)) \
+                / np.maximum(ne, 1)
         else:
             e_score = np.zeros(n)
         # oriented: the render's gradient orientation at its edge pixels against the image's responses;
         # the outline against the black background counts even for dark objects (+0.25 on the silhouette)
-        from .templates import orientation_bins
+        def gm(idx):  # grey level + 0.25 on the silhouette, at flat pixel indices
+            return gf.take(idx) + np.float32(0.25) * mask.take(idx)
 
-        gm = (g + np.float32(0.25) * mask).reshape(-1)
+        zero = np.float32(0.0)
         inx, iny = (ex > 0) & (ex < S - 1), (ey > 0) & (ey < S - 1)
-        gxm = np.where(inx, gm.take(np.where(inx, fe + 1, fe)) - gm.take(np.where(inx, fe - 1, fe)), 0.0)
-        gym = np.where(iny, gm.take(np.where(iny, fe + S, fe)) - gm.take(np.where(iny, fe - S, fe)), 0.0)
-        ob = orientation_bins(np.arctan2(gym, gxm)).astype(np.intp)
+        gxm = np.where(inx, gm(np.where(inx, fe + 1, fe)) - gm(np.where(inx, fe - 1, fe)), zero)
+        gym = np.where(iny, gm(np.where(iny, fe + S, fe)) - gm(np.where(iny, fe - S, fe)), zero)
+        ob = _orientation_bins_of(gxm, gym)
         resp = np.stack([obs[d].resp for d in udet]).reshape(-1)  # (U, 8, S, S) flat
-        o_score = np.bincount(eb, resp.take((ridx[eb] * 8 + ob) * (S * S) + rem), minlength=n) / np.maximum(ne, 1)
-        # colour with one gain per hypothesis, on the silhouette pixels
-        fm = np.flatnonzero(mask)
-        mb, mpix = np.divmod(fm, S * S)
-        opix = ridx[mb] * (S * S) + mpix  # the same pixel in the observation's crop
-        I = np.stack([obs[d].rgb for d in udet]).reshape(-1, 3)[opix]  # (P, 3) 0..1
-        Rv = rgb8.reshape(-1, 3)[fm].astype(np.float32) * np.float32(1.0 / 255.0)
-        num = np.bincount(mb, np.einsum("ij,ij->i", I, Rv), minlength=n)
-        den = np.bincount(mb, np.einsum("ij,ij->i", Rv, Rv), minlength=n)
-        gain = np.clip(num / np.maximum(den, 1e-9), 0.3, 3.0).astype(np.float32)
-        diff = np.linalg.norm(I - gain[mb, None] * Rv, axis=-1)
-        c_score = np.bincount(mb, np.maximum(0.0, 1.0 - diff / c.colour_tol), minlength=n) / np.maximum(area, 1)
+        o_score = esums(resp.take((ridx[eb] * 8 + ob) * SS + rem)) / np.maximum(ne, 1)
+        # colour with one gain per hypothesis, on the silhouette pixels (channels as rows: (3, P))
+        opix = ridx[mb] * SS + mpix  # the same pixel in the observation's crop
+        I = np.stack([obs[d].rgb for d in udet]).reshape(U * SS, 3).T.take(opix, axis=1)  # (3, P) 0..1
+        Rv = px.take(fm).view(np.uint8).reshape(-1, 4).T[:3].astype(np.float32, order="C")
+        Rv *= np.float32(1.0 / 255.0)
+        num = sums(I[0] * Rv[0] + I[1] * Rv[1] + I[2] * Rv[2])
+        den = sums(Rv[0] * Rv[0] + Rv[1] * Rv[1] + Rv[2] * Rv[2])
+        gain = np.clip(num / np.maximum(den, 1e-9), 0.3, 3.0).astype(np.float32).take(mb)
+        Rv *= gain
+        I -= Rv
+        I *= I
+        diff = np.sqrt(I[0] + I[1] + I[2])
+        c_score = sums(np.maximum(np.float32(0.0), np.float32(1.0) - diff / np.float32(c.colour_tol))) \
+            / np.maximum(area, 1)
         # region: object-like pixels inside vs outside the silhouette, within the box
         nb = np.stack([obs[d].not_bg for d in udet])
         inb = np.stack([obs[d].in_box for d in udet])
         nb_box = (nb * inb).sum((1, 2))[ridx]
         n_box = inb.sum((1, 2))[ridx].astype(np.float64)
-        w_in = inb.reshape(-1)[opix]
-        n_in = np.bincount(mb, w_in, minlength=n)
-        s_in = np.bincount(mb, nb.reshape(-1)[opix] * w_in, minlength=n)
+        w_in = inb.reshape(-1).take(opix)
+        n_in = sums(w_in.astype(np.float32))
+        s_in = sums(np.where(w_in, nb.reshape(-1).take(opix), np.float32(0.0)))
         pin = s_in / np.maximum(n_in, 1)
         pout = (nb_box - s_in) / np.maximum(n_box - n_in, 1)
         r_score = np.clip(0.5 + 0.5 * (pin - pout), 0.0, 1.0)
-        # box
-        ys = mask.any(2)
-        xs = mask.any(1)
-        x1 = np.where(has, xs.argmax(1), 0)
-        x2 = np.where(has, S - xs[:, ::-1].argmax(1), 0)
-        y1 = np.where(has, ys.argmax(1), 0)
-        y2 = np.where(has, S - ys[:, ::-1].argmax(1), 0)
+        # box of the silhouette (pixel edges): rows come sorted per hypothesis, columns need a min/max
+        x1, x2, y1, y2 = (np.zeros(n, np.int64) for _ in range(4))
+        if len(fm):
+            first, last = sums.first, sums.last
+            y1[has], y2[has] = my[first], my[last] + 1
+            x1[has] = np.minimum.reduceat(mx, first)
+            x2[has] = np.maximum.reduceat(mx, first) + 1
         bx = np.stack([obs[d].box_crop for d in udet])[ridx]
         iw = np.clip(np.minimum(x2, bx[:, 2]) - np.maximum(x1, bx[:, 0]), 0, None)
         ih = np.clip(np.minimum(y2, bx[:, 3]) - np.maximum(y1, bx[:, 1]), 0, None)
