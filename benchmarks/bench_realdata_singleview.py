@@ -11,11 +11,13 @@ detections (`cosy estimate --from-gt`):
 
 Variants: ``old`` (template score only: ``verify_top 0``, top 5 to ICP, no RGB refinement: the
 chain before issue 18), ``verify`` (templates verified by rendering, no refinement), ``new`` (the
-default: verification, then the RGB refinement where there is no depth, or ICP on 16 hypotheses
-picked by depth fit + image score), ``new-top5`` (new, 5 hypotheses to ICP), ``new-vt64`` (64
-hypotheses verified), ``new-fitonly`` (ICP pick by depth fit alone: ``image_weight 0``). Also
-prints the fraction of rotations within 15 deg (modulo symmetries), the median translation error
-(mm) and time per image.
+default: verification, then the RGB refinement (rgb_refine auto: contour) where there is no
+depth, or ICP on 16 hypotheses picked by depth fit + image score), ``new-top5`` (new, 5
+hypotheses to ICP), ``new-vt64`` (64 hypotheses verified), ``new-fitonly`` (ICP pick by depth fit
+alone: ``image_weight 0``), ``search``, ``contour`` and ``search+contour`` (RGB: the local search,
+the contour alignment (:mod:`cosy_cli.singleview.contour`), or both). Also prints
+the fraction of rotations within 15 deg (modulo symmetries), the median translation error (mm)
+and time per image.
 
     .venv/bin/python benchmarks/bench_realdata_singleview.py --data lmo --scenes even
     .venv/bin/python benchmarks/bench_realdata_singleview.py --data ycbv --frames 6-10
@@ -23,7 +25,10 @@ prints the fraction of rotations within 15 deg (modulo symmetries), the median t
 
 ``--sweep``: the speed/accuracy of verification settings (``SWEEP``: the first settings ``prev``,
 each speed-up alone, the default, two faster ones), all on each image in turn in one process, so
-that the timings share the machine's load.
+that the timings share the machine's load; the first image is run once untimed (renderers and
+decimated copies are made once per object set), and the time per image is the median (and mean)
+over images, with the detections per image. For the working tree against a git revision of the
+code (not only of the settings) see bench_stage1_speed.py.
 """
 
 from __future__ import annotations
@@ -50,6 +55,9 @@ VARIANTS = {
     "new-top5": {"top_k": 5},
     "new-vt64": {"verify_top": 64},
     "new-fitonly": {"image_weight": 0.0},
+    "search": {"rgb_refine": "search"},
+    "contour": {"rgb_refine": "contour"},
+    "search+contour": {"rgb_refine": "search+contour"},
 }
 
 
@@ -113,14 +121,15 @@ def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path
                                  progress=False)
         r15, tmed = rotation_stats(out, ds, db, scene_ids or ds.scene_ids, im_ids)
         ar = sc.get("bop19_average_recall")
-        print(f"{data:5s} {name:7s} AR(MSSD,MSPD) {sc['bop19_average_recall_mssd_mspd']:.3f}  "
+        print(f"{data:5s} {name:14s} AR(MSSD,MSPD) {sc['bop19_average_recall_mssd_mspd']:.3f}  "
               f"BOP19 AR {'n/a' if ar is None else f'{ar:.3f}'}  MSSD {sc['bop19_average_recall_mssd']:.3f}  "
               f"MSPD {sc['bop19_average_recall_mspd']:.3f}  rot<15 {r15:.3f}  median t err {tmed:.0f} mm  "
               f"{s['time_per_image_s']:.2f} s/image ({s['detections']} detections, {s['method']})", flush=True)
 
 
 # --sweep: speed/accuracy of verification settings, side by side (interleaved per image, one process)
-PREV = {"verify_top": 64, "rank_faces": 0, "rounds": 4, "samples": 24}  # the first settings (before speed-ups)
+PREV = {"verify_top": 64, "rank_faces": 0, "rounds": 4, "samples": 24, "refine_faces": 0,
+        "shading": "pixel"}  # the first settings (before speed-ups)
 SWEEP = {
     "prev": PREV,
     "vt32": {**PREV, "verify_top": 32},
@@ -128,9 +137,13 @@ SWEEP = {
     "crop48": {**PREV, "crop": 48},
     "r3x16": {**PREV, "rounds": 3, "samples": 16},
     "cascade+r3x16": {**PREV, "rank_faces": 1000, "rank_keep": 8, "rounds": 3, "samples": 16},
-    "default": {},  # cascade + r3x16 + 48 hypotheses
-    "fast2000": {"verify_top": 48, "rank_faces": 800, "rank_keep": 6, "rounds": 2, "samples": 16, "max_faces": 2000},
-    "fast1500": {"verify_top": 32, "rank_faces": 0, "rounds": 2, "samples": 16, "max_faces": 1500},
+    "default-1000": {"rank_faces": 1000},  # the default before the 600-face first pass
+    "default-pixel": {"shading": "pixel"},  # per-fragment lighting (the same colours to 1 grey level)
+    "search1500": {"refine_faces": 1500},  # the search on 1500-face copies
+    "default": {},  # cascade (600 / 3000 faces) + search r3x16 + 48 hypotheses, lit per vertex
+    "fast2000": {"verify_top": 48, "rank_faces": 800, "rank_keep": 6, "rounds": 2, "samples": 16, "max_faces": 2000,
+                 "refine_faces": 0},
+    "fast1500": {"verify_top": 32, "rank_faces": 0, "rounds": 2, "samples": 16, "max_faces": 1500, "refine_faces": 0},
 }
 
 
@@ -159,10 +172,11 @@ def sweep(scene_ids, names, templates_dir: Path) -> None:
     dets = detections_from_gt(ds, scene_ids or ds.scene_ids, 0.1)
     syms = {o: dbe[o].symmetries_with_steps(64) for o in dbe.obj_ids}
     th_mssd, th_mspd = np.arange(0.05, 0.51, 0.05), np.arange(5, 51, 5)
-    vers, res = {}, {n: {"ar": [], "rot": [], "t": []} for n in names}
+    vers, res = {}, {n: {"ar": [], "rot": [], "t": [], "dets": []} for n in names}
     for n in names:
         p = dict(SWEEP[n])
         vers[n] = (p.pop("verify_top", VERIFY_TOP_RGB), Verifier(db, VerifyConf(**p)))
+    first = True
     for (sid, im), idx in dets.groupby(["scene_id", "im_id"]).indices.items():
         d = dets.iloc[idx]
         rgb, K = ds.read_rgb(sid, im), ds.scene_camera(sid)[im].K
@@ -170,6 +184,13 @@ def sweep(scene_ids, names, templates_dir: Path) -> None:
         ids = d["obj_id"].to_numpy()
         gt = ds.scene_gt(sid)[im]
         T_gt = np.stack([gt[g].T_cam_obj for g in d["gt_index"]])
+        if first:  # untimed warm-up: renderers and decimated copies are made once per object set
+            for n in names:
+                nv, v = vers[n]
+                h = tpl.match_templates(ts, rgb, K, boxes, ids, top_k=nv, params=tpl.MatchParams(nms_deg=10.0))
+                r = v.rank(rgb, K, boxes, ids, h.T_cam_obj, h.scores)
+                v.refine(r.obs, ids, r.T_cam_obj[:, 0], r.prior[:, 0], r.score[:, 0])
+            first = False
         for n in names:
             nv, v = vers[n]
             t0 = time.perf_counter()
@@ -177,6 +198,7 @@ def sweep(scene_ids, names, templates_dir: Path) -> None:
             r = v.rank(rgb, K, boxes, ids, h.T_cam_obj, h.scores)
             T, _ = v.refine(r.obs, ids, r.T_cam_obj[:, 0], r.prior[:, 0], r.score[:, 0])
             res[n]["t"].append(time.perf_counter() - t0)
+            res[n]["dets"].append(len(ids))
             for i, o in enumerate(ids):
                 m, S = dbe[int(o)], syms[int(o)]
                 e1 = mssd(T[i:i + 1], T_gt[i:i + 1], m.points, S)[0] / m.diameter
@@ -187,9 +209,10 @@ def sweep(scene_ids, names, templates_dir: Path) -> None:
     for n in names:
         vers[n][1].close()
         r = res[n]
-        print(f"lmo sweep {n:14s} AR(MSSD,MSPD) {np.mean(r['ar']):.3f}  rot<15 {np.mean(r['rot']):.3f}  "
-              f"{np.mean(r['t']):.2f} s/image (median {np.median(r['t']):.2f}; {len(r['ar'])} detections, "
-              f"{len(r['t'])} images)", flush=True)
+        print(f"lmo sweep {n:18s} AR(MSSD,MSPD) {np.mean(r['ar']):.3f}  rot<15 {np.mean(r['rot']):.3f}  "
+              f"{np.median(r['t']):.3f} s/image median (mean {np.mean(r['t']):.3f}; "
+              f"{np.median(r['dets']):.0f} detections/image, {len(r['ar'])} detections, {len(r['t'])} images)",
+              flush=True)
 
 
 def main() -> None:

@@ -139,7 +139,8 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
         estimate_stage.resolve_conf("default", image_weight=-1)
     c = estimate_stage.decide(estimate_stage.resolve_conf("default", coarse="templates", refiner="none"),
                               coarse_model=None, refiner_model=None, has_depth=False)
-    assert c["rgb_refine"] == "search" and "RGB refinement" in estimate_stage.describe(c)
+    assert c["rgb_refine"] == estimate_stage.RGB_REFINE_AUTO == "contour"
+    assert "contour alignment" in estimate_stage.describe(c)
     assert c["verify_top"] == estimate_stage.VERIFY_TOP_RGB
     c = estimate_stage.decide(estimate_stage.resolve_conf("default", coarse="templates", refiner="none"),
                               coarse_model=None, refiner_model=None, has_depth=True)

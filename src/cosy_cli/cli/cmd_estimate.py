@@ -52,9 +52,10 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--verify-top", default=None, metavar="N|auto",
               help="Templates: this many hypotheses per detection scored by rendering them against the image "
                    "(0: template score only) [auto: 64 with ICP on depth, else 48].")
-@click.option("--rgb-refine", type=click.Choice(["search", "none", "auto"]), default=None,
-              help="Templates: refine the best hypothesis on the image by a local search on the rendering score "
-                   "[auto: when no depth refinement runs].")
+@click.option("--rgb-refine", type=click.Choice(["search", "contour", "search+contour", "none", "auto"]), default=None,
+              help="Templates: refine the best hypothesis on the image: a local search on the rendering score, "
+                   "aligning its outline with the image's (contour), or both [auto: contour when no depth "
+                   "refinement runs].")
 @click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
               help="Templates folder (built by `cosy templates` if missing) [OUT's folder/templates].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")

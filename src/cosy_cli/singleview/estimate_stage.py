@@ -10,10 +10,14 @@ with ``from_gt``) becomes one object candidate: label, the detector's score and 
    With templates, ``verify_top`` hypotheses are first re-ranked by rendering them against the
    image (:mod:`~cosy_cli.singleview.verify`) and the ``top_k`` best kept;
 2. with depth, ``depth_refine: icp`` first refines every coarse hypothesis against the observed
-   depth and keeps, per detection, the one with the best depth fit (:mod:`~cosy_cli.singleview.icp`)
+   depth (:mod:`~cosy_cli.singleview.icp`), adds the near-symmetry variants of the best (a box
+   turned over, a mug turned about its body; :mod:`~cosy_cli.singleview.depth_hypotheses`) and
+   keeps, per detection, the one with the best visibility-aware depth fit (free space counted)
    plus ``image_weight`` x its image score re-evaluated at the refined pose (when verified);
    without depth the best-scoring hypothesis is kept, then (``rgb_refine: search``) refined on the
-   image by a local search on the same image score;
+   image by a local search on the same image score, and/or (``contour``) by aligning the rendered
+   outline of it and of the runner-up with the image (:mod:`~cosy_cli.singleview.contour`), kept
+   where the image score improves;
 3. **refiner**: ``network``, the refiner iterated ``refiner_iterations`` times (paper: 4);
 4. with depth, a last ICP pass after the refiner.
 
@@ -55,6 +59,8 @@ SHIPPED_COARSE = shipped("coarse.onnx")
 SHIPPED_REFINER = shipped("refiner.onnx")
 
 VERIFY_TOP_RGB = 48    # hypotheses verified by rendering without depth (speed: 64 gave +0.006 AR for 1.1x the time)
+RGB_REFINE_AUTO = "contour"  # rgb_refine auto without depth (odd LM-O dev scenes: AR 0.313 search, 0.376 contour)
+CONTOUR_TOP = 2        # rgb_refine contour: hypotheses per detection aligned (the best after search, the runner-up)
 VERIFY_TOP_DEPTH = 64  # with ICP (which dominates the time there; 48 lost 0.04-0.05 BOP19 AR on YCB-V frames)
 
 CONFS = {
@@ -70,7 +76,7 @@ CONFS = {
         "min_visib_fract": 0.1,       # from_gt: boxes of instances at least this visible
         "icp_iterations": 20,
         "verify_top": "auto",         # templates: hypotheses scored by rendering (0: none; auto: 64 with ICP, else 48)
-        "rgb_refine": "auto",         # search | none | auto (search when no depth refinement runs)
+        "rgb_refine": "auto",         # search | contour | search+contour | none | auto (see RGB_REFINE_AUTO)
         "image_weight": 1.0,          # with depth and verification: pick by depth fit + this x image score
         "hypotheses": 1,              # poses per detection written (>1: the verified runners-up in a sidecar CSV)
     },
@@ -89,7 +95,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     c = merge_conf(CONFS, conf, overrides, default="default", what="estimate")
     choices = {"coarse": ("network", "templates", "auto"), "refiner": ("network", "none", "auto"),
                "depth_refine": ("icp", "none", "auto"), "providers": ("cpu", "cuda"),
-               "rgb_refine": ("search", "none", "auto")}
+               "rgb_refine": ("search", "contour", "search+contour", "none", "auto")}
     for k, allowed in choices.items():
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
@@ -183,6 +189,7 @@ class Estimator:
         self.templates = templates
         self._renderer = None
         self._verifier = None
+        self._contour = None
         self.coarse_net = self.refiner_net = None
         providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" else None
         if conf["coarse"] == "network":
@@ -220,7 +227,18 @@ class Estimator:
             self._verifier = Verifier(self.db)
         return self._verifier
 
+    @property
+    def contour(self):
+        if self._contour is None:
+            from .contour import ContourRefiner
+
+            self._contour = ContourRefiner(self.db)
+        return self._contour
+
     def close(self):
+        if self._contour is not None:
+            self._contour.close()
+            self._contour = None
         if self._verifier is not None:
             self._verifier.close()
             self._verifier = None
@@ -266,30 +284,49 @@ class Estimator:
         res.times["coarse"] = time.perf_counter() - t0
         res.steps["coarse"] = hyp[:, 0].copy()
         T = hyp[:, 0].copy()
-        if verified and c.get("rgb_refine") == "search" and not use_depth:
+        rgb_refine = c.get("rgb_refine") if verified and not use_depth else "none"
+        if rgb_refine in ("search", "search+contour"):
             t0 = time.perf_counter()
-            T, _ = self.verifier.refine(ranked.obs, obj_ids, T, ranked.prior[:, 0], ranked.score[:, 0])
+            T, s_T = self.verifier.refine(ranked.obs, obj_ids, T, ranked.prior[:, 0], ranked.score[:, 0])
             res.times["rgb_refine"] = time.perf_counter() - t0
             res.steps["rgb_refine"] = T.copy()
+        if rgb_refine in ("contour", "search+contour"):  # contour alignment of the best CONTOUR_TOP hypotheses
+            from .contour import refine_contour
+
+            t0 = time.perf_counter()
+            H = ranked.T_cam_obj[:, :CONTOUR_TOP].copy()
+            H[:, 0] = T
+            s0 = s_T if rgb_refine == "search+contour" else ranked.score[:, 0]
+            T = refine_contour(self.contour, self.verifier, ranked.obs, rgb, K, boxes, obj_ids, H,
+                               ranked.prior[:, :CONTOUR_TOP], s0).T
+            res.times["contour"] = time.perf_counter() - t0
+            res.steps["contour"] = T.copy()
         if use_depth:
             from .icp import IcpConf, refine_with_depth
 
             t0 = time.perf_counter()
             icp_conf = IcpConf(iterations=c["icp_iterations"])
-            r = refine_with_depth(depth, K, np.repeat(boxes, k, 0), np.repeat(obj_ids, k), hyp.reshape(-1, 4, 4),
-                                  self.db, icp_conf)
-            Tk = r.T_cam_obj.reshape(N, k, 4, 4)
-            if verified:  # depth fit + the image score re-evaluated at the refined poses (one render)
-                img = self.verifier.score(ranked.obs, np.repeat(np.arange(N), k), np.repeat(obj_ids, k),
-                                          r.T_cam_obj, ranked.prior[:, :k].reshape(-1)).reshape(N, k)
-                fit = r.fit_score.reshape(N, k) + c.get("image_weight", 1.0) * np.where(np.isfinite(img), img, 0.0)
+            from . import depth_hypotheses as dh
+
+            # ICP, then pick by depth fit (visibility-aware) + image_weight x the image score re-evaluated
+            # at the refined poses (when verified); more hypotheses where none fits the depth, and the
+            # near-symmetry variants of the best (a turned-over box, a turned mug): dh.refine_and_rank
+            img_of, tiebreak, pool = None, None, hyp
+            if verified:
+                def img_of(det, T_, src):
+                    return self.verifier.score(ranked.obs, det, obj_ids[det], T_, ranked.prior[det, src])
+                pool = ranked.T_cam_obj
             else:
-                fit = r.fit_score.reshape(N, k) + 1e-3 * hyp_score / max(float(np.abs(hyp_score).max()), 1e-9)
+                tiebreak = 1e-3 * hyp_score / max(float(np.abs(hyp_score).max()), 1e-9)
+            Tk, fit = dh.refine_and_rank(depth, K, boxes, obj_ids, pool, k, self.db, icp_conf, image_score=img_of,
+                                         image_weight=c.get("image_weight", 1.0), tiebreak=tiebreak)
+            fit = np.where(np.isfinite(fit), fit, -np.inf)
             best = fit.argmax(1)
             T = Tk[np.arange(N), best]
             rk = np.argsort(-fit, axis=1, kind="stable")[:, 1:]  # the others, best fit first
             res.alternatives = np.take_along_axis(Tk, rk[:, :, None, None], 1)
             res.alt_score = np.take_along_axis(fit, rk, 1)
+            res.alt_score[~np.isfinite(res.alt_score)] = np.nan  # padding (fewer variants): no hypothesis
             res.best_score = fit[np.arange(N), best]
             res.times["icp"] = time.perf_counter() - t0
             res.steps["icp"] = T.copy()
@@ -321,7 +358,7 @@ def decide(conf: dict, *, coarse_model: Path | None, refiner_model: Path | None,
     if c.get("verify_top") == "auto":  # chosen on the odd LM-O dev scenes (RGB) and YCB-V frames 1-5 (RGB-D)
         c["verify_top"] = VERIFY_TOP_DEPTH if c["depth_refine"] == "icp" else VERIFY_TOP_RGB
     if c.get("rgb_refine", "none") == "auto":
-        c["rgb_refine"] = "search" if c["coarse"] == "templates" and c["depth_refine"] == "none" \
+        c["rgb_refine"] = RGB_REFINE_AUTO if c["coarse"] == "templates" and c["depth_refine"] == "none" \
             and c.get("verify_top", 0) > 0 else "none"
     return c
 
@@ -330,8 +367,9 @@ def describe(conf: dict) -> str:
     parts = [f"coarse {conf['coarse']}" + (f" (top {conf['top_k']})" if conf["coarse"] == "templates" else "")]
     if conf["coarse"] == "templates" and conf.get("verify_top", 0) > 0:
         parts[0] += f", {conf['verify_top']} verified by rendering"
-    if conf.get("rgb_refine") == "search":
-        parts.append("RGB refinement")
+    if conf.get("rgb_refine") in ("search", "contour", "search+contour"):
+        parts.append({"search": "RGB refinement", "contour": "contour alignment",
+                      "search+contour": "RGB refinement + contour alignment"}[conf["rgb_refine"]])
     if conf["depth_refine"] == "icp":
         parts.append("ICP on depth")
     if conf["refiner"] == "network" and conf["refiner_iterations"] > 0:
