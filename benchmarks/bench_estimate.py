@@ -37,6 +37,10 @@ CHAINS = {
     "templates": {"coarse": "templates", "refiner": "none", "depth_refine": "none", "top_k": 1},
     "templates-old": {"coarse": "templates", "refiner": "none", "depth_refine": "none", "top_k": 1, "verify_top": 0,
                       "rgb_refine": "none"},
+    "templates-search": {"coarse": "templates", "refiner": "none", "depth_refine": "none", "top_k": 1,
+                         "rgb_refine": "search"},  # RGB: the local-search refinement (default before contour)
+    "templates-contour": {"coarse": "templates", "refiner": "none", "depth_refine": "none", "top_k": 1,
+                          "rgb_refine": "contour"},  # RGB: contour alignment (= "templates", the default)
     "templates-icp-old": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "top_k": 5,
                           "verify_top": 0},
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp"},

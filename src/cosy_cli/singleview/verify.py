@@ -4,7 +4,9 @@ Template retrieval (:mod:`~cosy_cli.singleview.templates`) ranks views by sparse
 only; in a cluttered, occluded real image its best template is often a wrong rotation while a
 right one is among its top few dozen. This module renders hypotheses with the mesh's own colours
 (vertex colours or texture; flat grey for bare meshes) into the detection's crop camera and
-scores them against the image, then refines the best by a local search on the same score.
+scores them against the image, and can refine the best by a local search on the same score
+(``rgb_refine: search``; the default RGB refinement is the contour alignment of
+:mod:`~cosy_cli.singleview.contour`, which uses this score as its accept test).
 
 Per detection (:class:`CropObservation`, computed once): a square window around the detection
 box, grown by ``margin`` x its larger side on each side, resampled to ``crop`` x ``crop`` px; its
