@@ -18,12 +18,12 @@ from cosy_cli.detection.boxes import clip_xyxy  # noqa: E402
 from cosy_cli.detection.importers import detections_from_gt  # noqa: E402
 from cosy_cli.errors import CosyError  # noqa: E402
 from cosy_cli.evaluation.pose_error import mssd  # noqa: E402
-from cosy_cli.geometry.poses import make_pose  # noqa: E402
 from cosy_cli.geometry.rotations import rotation_about_axis  # noqa: E402
 from cosy_cli.io.dataset import BopDataset  # noqa: E402
 from cosy_cli.objects.database import ObjectDatabase  # noqa: E402
 from cosy_cli.singleview.contour import ContourConf, ContourRefiner, refine_contour  # noqa: E402
 from cosy_cli.singleview.verify import Verifier, observe  # noqa: E402
+from painted_part import painted_part_view  # noqa: E402
 from realdata import LMO, needs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,28 +32,8 @@ SAMPLES = ROOT / "data_samples" / "models"
 
 @pytest.fixture(scope="module")
 def scene():
-    """A sample part painted in two colours, rendered at a known pose over a blocky random
-    background (320 x 240)."""
-    import trimesh
-
-    db = ObjectDatabase.from_models_dir(SAMPLES, obj_ids=[4])
-    obj = db[4]
-    mesh = obj.mesh.copy()
-    v = np.asarray(mesh.vertices)
-    col = np.where((v[:, 0] > np.median(v[:, 0]))[:, None], [200, 60, 40, 255], [40, 90, 200, 255])
-    mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=col.astype(np.uint8))
-    obj._mesh = mesh  # noqa: SLF001 (the test paints the part)
-    W, H = 320, 240
-    K = np.array([[400.0, 0, 159.5], [0, 400.0, 119.5], [0, 0, 1]])
-    R = rotation_about_axis(np.array([1.0, 0.3, 0.2]), [0.9])[0]
-    T = make_pose(R, np.array([5.0, -8.0, 8.0 * obj.diameter]))
-    rng = np.random.default_rng(0)
-    bg = (rng.integers(0, 255, (H // 8, W // 8, 3)).repeat(8, 0).repeat(8, 1)).astype(np.uint8)
-    with SceneRenderer({4: mesh}, W, H) as r:
-        out = r.render(K, [4], T[None], background=bg)
-    ys, xs = np.nonzero(out.instance >= 0)
-    box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=float)
-    return db, obj, out.rgb, K, T, box
+    """The painted sample part over a blocky background (tests/painted_part.py)."""
+    return painted_part_view()
 
 
 def _perturbed(T_gt, n, rng, rot_deg=6.0, px=1.5, depth_rel=0.05):

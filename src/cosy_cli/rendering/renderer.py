@@ -61,7 +61,9 @@ from OpenGL.GL import shaders as gl_shaders  # noqa: E402  (before any OpenGL.EG
 DEFAULT_COLOR = (0.7, 0.7, 0.7)  # RGB 0..1 of meshes without colours or texture
 MAX_ATLAS_SIDE = 2048  # pixels: side of the framebuffer that tiles are packed into (grown for bigger images)
 
-_VERTEX_SHADER = """
+# Pieces every program shares: the vertex inputs with the pose and projection uniforms, and the
+# three fragment outputs (colour, camera z in mm, instance index).
+_VS_INPUTS = """
 #version 330 core
 layout(location = 0) in vec3 position;
 layout(location = 1) in vec3 normal;
@@ -69,7 +71,26 @@ layout(location = 2) in vec2 texcoord;
 layout(location = 3) in vec4 color;
 uniform mat4 MV;  // object (mm) -> OpenCV camera (mm)
 uniform mat4 P;   // OpenCV camera -> clip
-out vec3 v_pos;
+"""
+_FS_OUTPUTS = """
+layout(location = 0) out vec4 out_color;
+layout(location = 1) out float out_depth;
+layout(location = 2) out int out_instance;
+"""
+
+_LIGHTING = """
+uniform vec3 light_dir;      // unit direction the light travels, camera frame
+uniform vec2 light;          // (directional intensity, ambient)
+// Lambert + ambient, two-sided: the normal is turned to face the camera (point p, camera frame)
+float shade(vec3 normal, vec3 p) {
+    float len = length(normal);
+    vec3 n = len > 1e-12 ? normal / len : -normalize(p);
+    if (dot(n, p) > 0.0) n = -n;
+    return light.y + light.x * max(dot(n, -light_dir), 0.0);
+}
+"""
+
+_VERTEX_SHADER = _VS_INPUTS + """out vec3 v_pos;
 out vec3 v_normal;
 out vec2 v_uv;
 out vec4 v_color;
@@ -92,20 +113,11 @@ in vec4 v_color;
 uniform vec4 base_color;
 uniform ivec3 flags;         // (use vertex colours, use texture, instance index)
 uniform sampler2D base_texture;
-uniform vec3 light_dir;      // unit direction the light travels, camera frame
-uniform vec2 light;          // (directional intensity, ambient)
-layout(location = 0) out vec4 out_color;
-layout(location = 1) out float out_depth;
-layout(location = 2) out int out_instance;
-void main() {
+""" + _LIGHTING + _FS_OUTPUTS + """void main() {
     vec4 albedo = base_color;
     if (flags.x != 0) albedo *= v_color;
     if (flags.y != 0) albedo *= texture(base_texture, v_uv);
-    float len = length(v_normal);
-    vec3 n = len > 1e-12 ? v_normal / len : -normalize(v_pos);
-    if (dot(n, v_pos) > 0.0) n = -n;  // two-sided: the normal faces the camera
-    float shade = light.y + light.x * max(dot(n, -light_dir), 0.0);
-    out_color = vec4(clamp(albedo.rgb * shade, 0.0, 1.0), 1.0);
+    out_color = vec4(clamp(albedo.rgb * shade(v_normal, v_pos), 0.0, 1.0), 1.0);
     out_depth = v_pos.z;
     out_instance = flags.z;
 }
@@ -118,31 +130,16 @@ void main() {
 # components), the depth and the UVs are interpolated instead of 12 components: 64 x 64 crops of
 # 1000-3000-face meshes render ~1.2-1.5x faster on llvmpipe (its triangle setup is the bottleneck).
 # Colours agree with the per-pixel program to 1 grey level.
-_VERTEX_LIT_VS = """
-#version 330 core
-layout(location = 0) in vec3 position;
-layout(location = 1) in vec3 normal;
-layout(location = 2) in vec2 texcoord;
-layout(location = 3) in vec4 color;
-uniform mat4 MV;  // object (mm) -> OpenCV camera (mm)
-uniform mat4 P;   // OpenCV camera -> clip
-uniform vec4 base_color;
+_VERTEX_LIT_VS = _VS_INPUTS + """uniform vec4 base_color;
 uniform ivec3 flags;         // (use vertex colours, use texture, instance index)
-uniform vec3 light_dir;
-uniform vec2 light;          // (directional intensity, ambient)
-out vec3 v_rgb;
+""" + _LIGHTING + """out vec3 v_rgb;
 out vec2 v_uv;
 out float v_z;
 void main() {
     vec4 p = MV * vec4(position, 1.0);
-    vec3 n = mat3(MV) * normal;
-    float len = length(n);
-    n = len > 1e-12 ? n / len : -normalize(p.xyz);
-    if (dot(n, p.xyz) > 0.0) n = -n;  // two-sided: the normal faces the camera
-    float shade = light.y + light.x * max(dot(n, -light_dir), 0.0);
     vec4 albedo = base_color;
     if (flags.x != 0) albedo *= color;
-    v_rgb = albedo.rgb * shade;
+    v_rgb = albedo.rgb * shade(mat3(MV) * normal, p.xyz);
     v_uv = texcoord;
     v_z = p.z;
     gl_Position = P * p;
@@ -156,10 +153,7 @@ in vec2 v_uv;
 in float v_z;
 uniform ivec3 flags;
 uniform sampler2D base_texture;
-layout(location = 0) out vec4 out_color;
-layout(location = 1) out float out_depth;
-layout(location = 2) out int out_instance;
-void main() {
+""" + _FS_OUTPUTS + """void main() {
     vec3 c = v_rgb;
     if (flags.y != 0) c *= texture(base_texture, v_uv).rgb;
     out_color = vec4(clamp(c, 0.0, 1.0), 1.0);
@@ -176,10 +170,7 @@ _VERTEX_LIT_RGB_FS = """
 #version 330 core
 in vec3 v_rgb;
 uniform ivec3 flags;
-layout(location = 0) out vec4 out_color;
-layout(location = 1) out float out_depth;
-layout(location = 2) out int out_instance;
-void main() {
+""" + _FS_OUTPUTS + """void main() {
     out_color = vec4(clamp(v_rgb, 0.0, 1.0), 1.0);
     out_depth = 0.0;
     out_instance = flags.z;
@@ -204,10 +195,7 @@ _MASK_FS = """
 #version 330 core
 in float v_z;
 uniform ivec3 flags;
-layout(location = 0) out vec4 out_color;
-layout(location = 1) out float out_depth;
-layout(location = 2) out int out_instance;
-void main() {
+""" + _FS_OUTPUTS + """void main() {
     out_color = vec4(1.0);
     out_depth = v_z;
     out_instance = flags.z;
