@@ -20,6 +20,13 @@ used to follow the first detector's training).
 Detections are kept from score 0.05 for AP (COCO practice: AP ranks by score); AP50 is also
 given for the stage's default --min-score 0.3 (same detections, filtered). --from-gt evaluates
 the GT boxes themselves (a sanity check: AP 1). --json writes every figure to a file.
+
+Second-stage box classifier: --classifier auto|none|PATH (the stage's setting, default auto: the
+shipped one), --label-ratio / --label-mix / --background (its rescoring rule). --compare runs
+with and without the classifier; --gt-classifier measures the classifier alone: the GT boxes,
+labelled (and ranked) by the classifier only (the limit of what telling look-alikes apart from one
+crop gives); --sweep prints AP50 over a grid of rule settings (detector and classifier outputs
+computed once; use it on the follow seed 4242 only).
 """
 
 from __future__ import annotations
@@ -36,6 +43,8 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -70,7 +79,7 @@ def ensure_seed_set(out: Path | None, seed: int, scenes: int = 6, views: int = 6
 
 def evaluate(dataset: Path, model: Path | None = None, *, scene_ids=None, from_gt: bool = False,
              min_score: float = 0.05, providers: str = "cpu", progress: bool = True, detector=None,
-             **stage_settings) -> dict:
+             classifier_object=None, **stage_settings) -> dict:
     """Every figure of one detector on the test split of ``dataset``: the scores of
     :func:`cosy_cli.evaluation.detection_ap.coco_ap` plus "confusion" (summary), "confusion_table"
     (GT obj_id -> {label or "missed": count}), "at_default" (AP, AP50, AP75 at the stage's default
@@ -82,7 +91,8 @@ def evaluate(dataset: Path, model: Path | None = None, *, scene_ids=None, from_g
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "dets.json"
         s = stage.main(conf, dataset, "test", out, overwrite=True, scene_ids=scenes, model=model,
-                       from_gt=from_gt, log=lambda *_: None, progress=progress, detector=detector)
+                       from_gt=from_gt, log=lambda *_: None, progress=progress, detector=detector,
+                       classifier=classifier_object)
         dets = importers.read_detections_any(out, ds)
     first = ds.image_ids(scenes[0])[0]
     h, w = ds.read_rgb(scenes[0], first).shape[:2]
@@ -90,13 +100,147 @@ def evaluate(dataset: Path, model: Path | None = None, *, scene_ids=None, from_g
     table = detection_ap.confusion_matrix(dets, ds, scenes, conf["min_visib_fract"])
     scores["confusion"] = detection_ap.confusion_summary(table)
     scores["confusion_table"] = {str(g): {str(c): int(n) for c, n in row.items()} for g, row in table.iterrows()}
-    at_default = stage.keep_best(dets, stage.CONFS["default"]["min_score"], conf["max_per_image"])
+    if s.get("classifier"):  # the stage's min_score applies to the detector's scores: run it at the default
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / "dets.json"
+            stage.main(dict(conf, min_score=stage.CONFS["default"]["min_score"]), dataset, "test", out,
+                       overwrite=True, scene_ids=scenes, model=model, log=lambda *_: None, progress=False,
+                       detector=detector, classifier=classifier_object)
+            at_default = importers.read_detections_any(out, ds)
+    else:
+        at_default = stage.keep_best(dets, stage.CONFS["default"]["min_score"], conf["max_per_image"])
     s30 = detection_ap.coco_ap(at_default, ds, scenes, conf["min_visib_fract"])
     scores["at_default"] = {"min_score": stage.CONFS["default"]["min_score"], "AP": s30["AP"], "AP50": s30["AP50"],
                             "AP75": s30["AP75"], "detections": s30["detections"]}
+    clf = s.get("classifier") or {}
+    scores["classifier"] = clf or None
     scores.update(time_per_image_s=s.get("time_per_image_s"), time_per_image_median_s=s.get("time_per_image_median_s"),
                   image_size=[w, h], scene_ids=[int(v) for v in scenes], images_run=s["images"], source=s["source"])
     return scores
+
+
+class CachedDetector:
+    """A detector whose outputs are computed once per image (keyed by the image bytes' hash)."""
+
+    def __init__(self, det):
+        self.det, self.obj_ids, self.cache = det, getattr(det, "obj_ids", None), {}
+
+    def detect(self, rgb, min_score=0.3, max_per_image=30, nms_iou=0.5):
+        import hashlib
+
+        key = (hashlib.sha1(rgb.tobytes()).hexdigest(), min_score, max_per_image, nms_iou)
+        if key not in self.cache:
+            self.cache[key] = self.det.detect(rgb, min_score, max_per_image, nms_iou)
+        return self.cache[key]
+
+
+class CachedClassifier:
+    """A box classifier whose outputs are computed once per (image, boxes)."""
+
+    def __init__(self, clf):
+        self.clf, self.obj_ids, self.path, self.cache = clf, clf.obj_ids, clf.path, {}
+
+    def classify(self, rgb, boxes):
+        import hashlib
+
+        key = hashlib.sha1(rgb.tobytes() + np.asarray(boxes, np.float64).tobytes()).hexdigest()
+        if key not in self.cache:
+            self.cache[key] = self.clf.classify(rgb, boxes)
+        return self.cache[key]
+
+
+def gt_classifier_scores(dataset: Path, classifier, scene_ids, min_visib_fract: float = 0.1,
+                         label_ratio: float = 1.0) -> dict:
+    """AP of the visible GT boxes labelled by the classifier alone (objectness 1, label_mix 0):
+    label_ratio 1 keeps its best label only; smaller values add the runner-up labels ranked by
+    probability. Returns coco_ap's scores plus "confusion_table"."""
+    import pandas as pd
+
+    from cosy_cli.detection.classifier import rescore
+
+    ds = BopDataset(dataset, "test")
+    gt = importers.detections_from_gt(ds, scene_ids, min_visib_fract)
+    rows = []
+    for (sid, im), g in gt.groupby(["scene_id", "im_id"]):
+        rgb = ds.read_rgb(int(sid), int(im))
+        boxes = g[["x", "y", "w", "h"]].to_numpy(np.float64)
+        probs = classifier.classify(rgb, boxes)
+        b, sc, lb, _ = rescore(boxes, np.ones(len(boxes)), g["obj_id"].to_numpy(), probs, classifier.obj_ids,
+                               label_mix=0.0, label_ratio=label_ratio, background=0.0)
+        rows.append(pd.DataFrame({"scene_id": int(sid), "im_id": int(im), "obj_id": lb, "score": sc, "x": b[:, 0],
+                                  "y": b[:, 1], "w": b[:, 2], "h": b[:, 3]}))
+    dets = pd.concat(rows, ignore_index=True)
+    scores = detection_ap.coco_ap(dets, ds, scene_ids, min_visib_fract)
+    table = detection_ap.confusion_matrix(dets, ds, scene_ids, min_visib_fract)
+    scores["confusion"] = detection_ap.confusion_summary(table)
+    scores["confusion_table"] = {str(g): {str(c): int(n) for c, n in row.items()} for g, row in table.iterrows()}
+    return scores
+
+
+def lookalike_visibility(dataset: Path, a: int, b: int, scene_ids, classifier=None, min_visib_fract: float = 0.1,
+                         tolerance_mm: float = 3.0) -> list[dict]:
+    """For every GT instance of the look-alikes ``a`` and ``b`` (visib_fract >= ``min_visib_fract``):
+    the pixels where object a and object b rendered at the instance's GT pose differ (one covers
+    the pixel and the other not, or their depths differ by more than 1 mm) and that no other
+    surface of the scene hides (the scene's depth image is not nearer than the nearer render by
+    more than ``tolerance_mm``): how much of the difference (object 7's notch) the image shows.
+    Returns one dict per instance: scene_id, im_id, obj_id, visib_fract, diff_px (visible
+    differing pixels), and with a classifier p_a, p_b (its probabilities on the GT box)."""
+    from cosy_cli.objects import ObjectDatabase
+    from cosy_cli.rendering import SceneRenderer
+
+    ds = BopDataset(dataset, "test")
+    db = ObjectDatabase.from_models_dir(ds.models_dir, n_points=10)
+    meshes = {o.obj_id: o.mesh for o in db if o.obj_id in (a, b)}
+    gt = importers.detections_from_gt(ds, scene_ids, min_visib_fract)
+    gt = gt[gt["obj_id"].isin([a, b]).to_numpy()]
+    out = []
+    w, h = ds.image_size(scene_ids[0], ds.image_ids(scene_ids[0])[0])
+    with SceneRenderer(meshes, w, h, znear=10.0, zfar=20_000.0) as r:
+        for (sid, im), g in gt.groupby(["scene_id", "im_id"]):
+            sid, im = int(sid), int(im)
+            cam = ds.scene_camera(sid)[im]
+            depth = ds.read_depth(sid, im)
+            inst = ds.scene_gt(sid)[im]
+            rgb = ds.read_rgb(sid, im) if classifier is not None else None
+            boxes = g[["x", "y", "w", "h"]].to_numpy(float)
+            probs = classifier.classify(rgb, boxes) if classifier is not None else None
+            for j, row in enumerate(g.itertuples(index=False)):
+                T = inst[int(row.gt_index)].T_cam_obj
+                da = r.render(cam.K, [a], T[None], with_rgb=False).depth
+                dbb = r.render(cam.K, [b], T[None], with_rgb=False).depth
+                ma, mb = da > 0, dbb > 0
+                diff = (ma != mb) | (ma & mb & (np.abs(da - dbb) > 1.0))
+                near = np.where(ma & mb, np.minimum(da, dbb), np.where(ma, da, dbb))
+                seen = diff & (depth >= near - tolerance_mm) if depth is not None else diff
+                d = {"scene_id": sid, "im_id": im, "obj_id": int(row.obj_id), "diff_px": int(seen.sum())}
+                if probs is not None:
+                    ids = list(classifier.obj_ids)
+                    d["p_a"], d["p_b"] = float(probs[j, ids.index(a)]), float(probs[j, ids.index(b)])
+                out.append(d)
+    return out
+
+
+def lookalike_lines(rows: list[dict], a: int, b: int, bins=(0, 1, 20, 80, 10**9)) -> str:
+    """Instances of a and b by visible differing pixels, with the classifier's a-vs-b accuracy."""
+    lines = [f"look-alikes {a}/{b}: GT instances by the pixels that tell them apart in the image "
+             "(rendered at the GT pose, not hidden), and the classifier's choice between the two on the GT box"]
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        sel = [r for r in rows if lo <= r["diff_px"] < hi]
+        if not sel:
+            continue
+        acc = ""
+        if "p_a" in sel[0]:
+            right = sum((r["p_a"] >= r["p_b"]) == (r["obj_id"] == a) for r in sel)
+            acc = f", classifier right {right}/{len(sel)}"
+        rng = f"{lo}-{hi - 1}" if hi < 10**9 else f">= {lo}"
+        n_a, n_b = sum(r["obj_id"] == a for r in sel), sum(r["obj_id"] == b for r in sel)
+        lines.append(f"  {rng:>8s} px: {a} x{n_a}, {b} x{n_b}" + acc)
+    return "\n".join(lines)
+
+
+def per_object_line(scores: dict) -> str:
+    return " ".join(f"{o}: {v['AP50']:.2f}" for o, v in scores["per_object"].items() if v["AP50"] is not None)
 
 
 def confusions_line(scores: dict) -> str:
@@ -130,6 +274,18 @@ def main() -> None:
     ap.add_argument("--min-score", type=float, default=0.05)
     ap.add_argument("--agnostic-nms-iou", type=float, default=None,
                     help="cosy detect's NMS across labels (1 = off) [the stage's default]")
+    ap.add_argument("--classifier", default=None, help="second-stage box classifier: auto | none | PATH [auto]")
+    ap.add_argument("--label-ratio", type=float, default=None, help="classifier rule: emit labels with p >= this x "
+                    "the best [the stage's default]")
+    ap.add_argument("--label-mix", type=float, default=None, help="classifier rule: weight of the detector's label")
+    ap.add_argument("--background", type=float, default=None, help="classifier rule: exponent of 1 - p_background")
+    ap.add_argument("--compare", action="store_true", help="also run without the classifier, print both")
+    ap.add_argument("--gt-classifier", action="store_true",
+                    help="also: GT boxes labelled by the classifier alone (the limit of one crop)")
+    ap.add_argument("--lookalike", default=None, metavar="A:B",
+                    help="also: how many pixels telling objects A and B apart each GT instance of them shows, and "
+                         "the classifier's accuracy by that count")
+    ap.add_argument("--sweep", action="store_true", help="AP50 over a grid of classifier rule settings (seed 4242)")
     ap.add_argument("--json", type=Path, default=None, help="write all figures to this JSON file")
     args = ap.parse_args()
     if args.seed is not None:
@@ -146,9 +302,30 @@ def main() -> None:
         what = "held-out"
     ds = BopDataset(dataset, "test")
     scenes = ds.scene_ids[: args.first_scenes] if args.first_scenes else ds.scene_ids
+    rule = {k: v for k, v in (("classifier", args.classifier), ("label_ratio", args.label_ratio),
+                                ("label_mix", args.label_mix), ("background", args.background)) if v is not None}
+    extra = {}
     try:
+        if args.sweep:
+            sweep(dataset, args.model, scenes, args)
+            return
         scores = evaluate(dataset, args.model, scene_ids=scenes, from_gt=args.from_gt, min_score=args.min_score,
-                          providers=args.providers, agnostic_nms_iou=args.agnostic_nms_iou)
+                          providers=args.providers, agnostic_nms_iou=args.agnostic_nms_iou, **rule)
+        if args.compare:
+            extra["without_classifier"] = evaluate(
+                dataset, args.model, scene_ids=scenes, min_score=args.min_score, providers=args.providers,
+                agnostic_nms_iou=args.agnostic_nms_iou, classifier="none")
+        if args.gt_classifier:
+            clf = stage.load_classifier(args.classifier or "auto", ds.models_info())
+            if clf is None:
+                sys.exit("error: --gt-classifier needs a classifier")
+            extra["gt_classifier"] = gt_classifier_scores(dataset, clf, scenes)
+            extra["gt_classifier_two_labels"] = gt_classifier_scores(
+                dataset, clf, scenes, label_ratio=args.label_ratio or stage.CONFS["default"]["label_ratio"])
+        if args.lookalike:
+            a, b = (int(v) for v in args.lookalike.split(":"))
+            clf = stage.load_classifier(args.classifier or "auto", ds.models_info())
+            extra["lookalike"] = lookalike_visibility(dataset, a, b, scenes, clf)
     except CosyError as e:
         sys.exit(f"error: {e}")
     w, h = scores["image_size"]
@@ -161,13 +338,50 @@ def main() -> None:
     print(confusions_line(scores))
     if scores.get("time_per_image_s"):
         print(f"detector time per {w}x{h} image: mean {scores['time_per_image_s'] * 1e3:.1f} ms, median "
-              f"{scores['time_per_image_median_s'] * 1e3:.1f} ms (resize + network + decoding + NMS; "
-              f"{args.providers}, {os.cpu_count()} cores)")
+              f"{scores['time_per_image_median_s'] * 1e3:.1f} ms (resize + network + decoding + NMS"
+              + (f" + box classifier, of which the classifier {scores['classifier']['time_per_image_s'] * 1e3:.1f} ms "
+                 f"mean" if scores.get("classifier") else "") + f"; {args.providers}, {os.cpu_count()} cores)")
+    if "without_classifier" in extra:
+        o = extra["without_classifier"]
+        print(f"without the classifier: AP {o['AP']:.3f}  AP50 {o['AP50']:.3f}  AP75 {o['AP75']:.3f}; per-object "
+              f"AP50 {per_object_line(o)}; {confusions_line(o)}; median {o['time_per_image_median_s'] * 1e3:.1f} ms")
+    for key, what in (("gt_classifier", "best label only"), ("gt_classifier_two_labels", "plausible labels")):
+        if key in extra:
+            g = extra[key]
+            print(f"GT boxes labelled by the classifier alone ({what}): AP50 {g['AP50']:.3f}; per-object AP50 "
+                  f"{per_object_line(g)}; {confusions_line(g)}")
+    if "lookalike" in extra:
+        print(lookalike_lines(extra["lookalike"], *(int(v) for v in args.lookalike.split(":"))))
+    scores.update(extra)
     if args.json:
         scores["dataset"] = str(Path(dataset).resolve())
         scores["seed"] = args.seed
         scores["model"] = str(args.model) if args.model else "shipped"
         args.json.write_text(json.dumps(scores, indent=1))
+
+
+def sweep(dataset: Path, model, scenes, args) -> None:
+    """AP50 (overall, objects 6 and 7, the worst object) of a grid of rule settings; detector and
+    classifier outputs are computed once."""
+    import itertools
+
+    from cosy_cli.detection.network import OnnxDetector
+
+    ds = BopDataset(dataset, "test")
+    det = CachedDetector(OnnxDetector(model or stage.SHIPPED_DETECTOR))
+    clf = stage.load_classifier(args.classifier or "auto", ds.models_info())
+    if clf is None:
+        sys.exit("error: --sweep needs a classifier")
+    clf = CachedClassifier(clf)
+    base = evaluate(dataset, model, scene_ids=scenes, min_score=args.min_score, detector=det, classifier="none",
+                    progress=False)
+    print(f"no classifier: AP50 {base['AP50']:.3f} AP {base['AP']:.3f}; {per_object_line(base)}")
+    for ratio, mix, bg in itertools.product((1.0, 0.5, 0.3, 0.2, 0.1), (0.0, 0.2, 0.4, 0.6), (0.0, 1.0)):
+        s = evaluate(dataset, model, scene_ids=scenes, min_score=args.min_score, detector=det, classifier_object=clf,
+                     label_ratio=ratio, label_mix=mix, background=bg, progress=False)
+        worst = min(v["AP50"] for v in s["per_object"].values() if v["AP50"] is not None)
+        print(f"label_ratio {ratio:<5g} label_mix {mix:<4g} background {bg:<3g}: AP50 {s['AP50']:.3f} AP "
+              f"{s['AP']:.3f} worst {worst:.2f}; {per_object_line(s)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -33,11 +33,18 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @click.option("--min-visib", "min_visib", type=click.FloatRange(0, 1), default=None,
               help="--from-gt: instances at least this visible (visib_fract) [0.1, the BOP targets' threshold].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
+@click.option("--classifier", default=None, metavar="auto|none|PATH",
+              help="Detector: second-stage box classifier that relabels each box from a close-up crop and keeps "
+                   "a second label when unsure (score x its probability): auto = the shipped one with the shipped "
+                   "detector when it knows the dataset's objects, none, or an exported classifier ONNX [auto].")
+@click.option("--label-ratio", type=click.FloatRange(0, 1, min_open=True), default=None,
+              help="With a classifier: also emit a box under every label whose probability is at least this x "
+                   "the best label's [0.2].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images, from_gt, min_score, max_per_image,
-           nms_iou, agnostic_nms_iou, min_visib, providers, overwrite, quiet) -> None:
+           nms_iou, agnostic_nms_iou, min_visib, providers, classifier, label_ratio, overwrite, quiet) -> None:
     """2D detections of the dataset's objects, one BOP detections file (CosyPose's first input).
 
     Sources: the shipped detector (default) or --model, --from-json (another tool's detections,
@@ -48,7 +55,8 @@ def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images,
 
     dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
     c = stage.resolve_conf("default", min_score=min_score, max_per_image=max_per_image, nms_iou=nms_iou,
-                           agnostic_nms_iou=agnostic_nms_iou, min_visib_fract=min_visib, providers=providers)
+                           agnostic_nms_iou=agnostic_nms_iou, min_visib_fract=min_visib, providers=providers,
+                           classifier=classifier, label_ratio=label_ratio)
     stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids, model=model, from_json=from_json,
                coco_images=coco_images, from_gt=from_gt, log=click.echo, progress=not quiet)
 

@@ -55,7 +55,7 @@ def _pairs(ctx, param, value):
 
 
 @click.command("train")
-@click.argument("kind", type=click.Choice(["coarse", "refiner", "detector"]))
+@click.argument("kind", type=click.Choice(["coarse", "refiner", "detector", "classifier"]))
 @click.option("--dataset", required=True, type=click.Path(path_type=Path),
               help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered.")
 @click.option("--split", default="train_pbr", show_default=True,
@@ -68,8 +68,8 @@ def _pairs(ctx, param, value):
 @click.option("--input", "input_size", callback=_crop, default=None,
               help="Detector input size WIDTHxHEIGHT px, multiples of 16 [320x240] (detector only).")
 @click.option("--init", "init", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Detector only: warm start from an exported detector ONNX of the same architecture (any input "
-                   "size), e.g. the shipped one.")
+              help="Detector / classifier: warm start from an exported detector ONNX of the same architecture "
+                   "(any input size; the classifier takes its backbone), e.g. the shipped one.")
 @click.option("--class-weights", callback=_class_weights, default=None,
               help="Detector only: sampling weights of the objects, OBJ=WEIGHT,... (others 1) [uniform].")
 @click.option("--confusable", callback=_pairs, default=None,
@@ -98,12 +98,27 @@ def train(kind, dataset, split, out, backbone, crop, input_size, init, class_wei
     """Train the KIND (coarse or refiner PoseNet, or the 2D detector) on domain-randomised renders
     of the dataset's objects.
 
+    Box classifier (second stage of `cosy detect`): crops of the visible boxes of rendered scenes
+    (plus background crops), cross-entropy.
+
     Pose networks: disentangled symmetric loss (mm), Adam with warm-up; the refiner's input-pose
     noise follows a curriculum from 0.3 to 1.0 of its full size over the first half of
     --iterations. Detector: centre-heatmap network (focal + GIoU losses) on rendered scenes.
     Resumable: Ctrl-C or SIGTERM (e.g. `kill PID` of a background run) saves
     a checkpoint; --resume continues (with a larger --iterations to train longer).
     """
+    if kind == "classifier":
+        if backbone is not None or crop is not None or input_size is not None:
+            raise click.UsageError("--backbone, --crop and --input are not for the box classifier")
+        from ..detection import classifier_train
+
+        conf = classifier_train.resolve_conf(
+            None, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
+            device=device, workers=workers, seed=seed, checkpoint_every=checkpoint_every, class_weights=class_weights,
+            confusable=confusable, p_pair=p_pair, init=init)
+        classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo,
+                              progress=not quiet)
+        return
     if kind == "detector":
         if backbone is not None or crop is not None:
             raise click.UsageError("--backbone and --crop are for the pose networks; the detector takes --input")
@@ -161,6 +176,11 @@ def export(run, out, accuracy) -> None:
                   if not (Path(run) / n).is_file()]
         raise CosyError(f"neither a cosy run folder ({' and '.join(ours)} missing; train one with `cosy train`) nor "
                         f"a CosyPose run directory ({' and '.join(theirs)} missing)", path=run)
+    if det_train.run_kind(run) == "classifier":
+        from ..detection import classifier_train
+
+        classifier_train.export(run, out, accuracy=accuracy, log=click.echo)
+        return
     if det_train.run_kind(run) == "detector":
         det_train.export(run, out, accuracy=accuracy, log=click.echo)
         return

@@ -5,7 +5,15 @@ Exactly one source:
 * ``model`` (the default: the detector shipped with cosy, ``assets/detector.onnx``): an
   exported detector (:class:`cosy_cli.detection.network.OnnxDetector`) run on every image of
   the chosen scenes, keeping boxes scored >= ``min_score``, per-class NMS at ``nms_iou``, at
-  most ``max_per_image``; the BOP ``time`` field is the detector's seconds for that image;
+  most ``max_per_image``; then, with a second-stage box classifier (setting ``classifier``:
+  ``auto`` = the shipped ``assets/classifier.onnx`` when the detector is the shipped one and the
+  classifier knows exactly the dataset's objects, ``none``, or the path of one; see
+  :mod:`cosy_cli.detection.classifier`), every box is cropped from the full-resolution image,
+  classified, and emitted once per plausible label (score = detector score x the label's
+  probability; :func:`~cosy_cli.detection.classifier.rescore`),
+  followed by per-class NMS again (``min_score`` then stays the detector's threshold: the labels
+  of a kept box may score less); the BOP ``time`` field is the seconds for that image
+  (detector + classifier);
 * ``from_json``: a detections file made by another tool, BOP or COCO results format (see
   :mod:`cosy_cli.detection.importers`), checked against the dataset (object ids, scene and
   image ids, boxes inside the image), then filtered like the detector's output (``min_score``,
@@ -37,8 +45,10 @@ from ..io.dataset import BopDataset
 from ..shipped import model_path, shipped
 from . import importers
 from .boxes import clip_xyxy, xyxy_to_xywh
+from .classifier import RULE_DEFAULTS
 
 SHIPPED_DETECTOR = shipped("detector.onnx")
+SHIPPED_CLASSIFIER = shipped("classifier.onnx")
 FORMAT_VERSION = 1
 
 CONFS = {
@@ -49,6 +59,11 @@ CONFS = {
         "agnostic_nms_iou": 1.0,  # model: also across labels (one object, two labels); 1.0 = off
         "min_visib_fract": 0.1,  # from_gt: boxes of instances at least this visible (BOP targets: 0.1)
         "providers": "cpu",      # onnxruntime: cpu | cuda
+        "classifier": "auto",    # model: second-stage box classifier: auto (the shipped one when it knows the
+                                 # dataset's objects) | none | PATH of an exported classifier ONNX
+        "label_mix": RULE_DEFAULTS["label_mix"],      # classifier: weight of the detector's label
+        "label_ratio": RULE_DEFAULTS["label_ratio"],  # classifier: emit labels with p >= this x the best p
+        "background": RULE_DEFAULTS["background"],    # classifier: objectness x (1 - p_background) ** this
     },
 }
 
@@ -61,13 +76,48 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["min_score"], c["nms_iou"] = float(c["min_score"]), float(c["nms_iou"])
         c["agnostic_nms_iou"] = float(c["agnostic_nms_iou"])
         c["min_visib_fract"], c["max_per_image"] = float(c["min_visib_fract"]), int(c["max_per_image"])
+        c["label_mix"], c["label_ratio"] = float(c["label_mix"]), float(c["label_ratio"])
+        c["background"] = float(c["background"])
+        c["classifier"] = "none" if c["classifier"] in (None, False) else str(c["classifier"])
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None
     if not (0 <= c["min_score"] <= 1 and 0 < c["nms_iou"] <= 1 and 0 < c["agnostic_nms_iou"] <= 1 and 0 <= c["min_visib_fract"] <= 1
             and c["max_per_image"] >= 1):
         raise CosyError("detect settings out of range (min_score, min_visib_fract in [0, 1], nms_iou in (0, 1], "
                         f"max_per_image >= 1): {c}")
+    if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0):
+        raise CosyError("detect settings out of range (label_mix in [0, 1], label_ratio in (0, 1], background >= 0): "
+                        f"{c['label_mix']}, {c['label_ratio']}, {c['background']}")
     return c
+
+
+def load_classifier(setting: str, dataset_obj_ids, detector_obj_ids=None, providers=("cpu",), log=print):
+    """The box classifier a detect run uses: None for "none"; for "auto" the shipped
+    ``assets/classifier.onnx`` when present and its objects are the dataset's (else None, with a
+    message); else the ONNX file ``setting`` (:class:`CosyError` if it is missing, not a cosy
+    classifier, or lacks objects of the dataset or of the detector)."""
+    from .classifier import OnnxClassifier
+
+    wanted = sorted(int(o) for o in dataset_obj_ids)
+    if detector_obj_ids is not None:
+        wanted = sorted(set(wanted) & {int(o) for o in detector_obj_ids})
+    if setting == "none":
+        return None
+    if setting == "auto":
+        if not SHIPPED_CLASSIFIER.is_file():
+            return None
+        clf = OnnxClassifier(SHIPPED_CLASSIFIER, providers)
+        if sorted(clf.obj_ids) != sorted(int(o) for o in dataset_obj_ids):
+            log(f"detect: the shipped box classifier knows objects {clf.obj_ids}, the dataset has "
+                f"{sorted(int(o) for o in dataset_obj_ids)}: not used (train one with `cosy train classifier`)")
+            return None
+        return clf
+    clf = OnnxClassifier(setting, providers)
+    missing = sorted(set(wanted) - set(clf.obj_ids))
+    if missing:
+        raise CosyError(f"box classifier knows objects {clf.obj_ids}, not {missing} of the dataset/detector "
+                        "(use a classifier trained on this dataset's models, or --classifier none)", path=setting)
+    return clf
 
 
 def sidecar_path(out: str | Path) -> Path:
@@ -86,17 +136,26 @@ def keep_best(dets: pd.DataFrame, min_score: float, max_per_image: int) -> pd.Da
 
 
 def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, log=print,
-                 progress: bool = True) -> tuple[pd.DataFrame, list[float]]:
+                 progress: bool = True, classifier=None, classifier_times: list | None = None
+                 ) -> tuple[pd.DataFrame, list[float]]:
     """Run ``detector.detect(rgb, min_score, max_per_image, nms_iou) -> (boxes_xywh (N, 4) px,
     scores (N,), obj_ids (N,))`` on every image of the scenes. Returns the detections table (boxes
     clipped to the image, labels that are not objects of the dataset dropped with a message) and
-    the seconds per image."""
+    the seconds per image. classifier: an object with ``obj_ids`` and ``classify(rgb, boxes_xywh)
+    -> (N, C + 1)`` probabilities (:class:`~cosy_cli.detection.classifier.OnnxClassifier`): the
+    boxes are rescored with :func:`~cosy_cli.detection.classifier.rescore` (settings label_mix,
+    label_ratio, background), then per-class NMS again; its seconds per image are appended to
+    ``classifier_times`` and included in the returned times."""
     from tqdm import tqdm
 
     known = set(ds.models_info())
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
     if images:  # one untimed warm-up call: the runtime's first call allocates (seconds), not per-image work
-        detector.detect(ds.read_rgb(*images[0]), conf["min_score"], conf["max_per_image"], conf["nms_iou"])
+        rgb0 = ds.read_rgb(*images[0])
+        b0, _, _ = detector.detect(rgb0, conf["min_score"], conf["max_per_image"], conf["nms_iou"])
+        if classifier is not None:
+            classifier.classify(rgb0, np.asarray(b0, dtype=np.float64).reshape(-1, 4)[:1] if len(b0) else
+                                np.array([[0.0, 0.0, 31.0, 31.0]]))
     parts, times, dropped = [], [], {}
     for sid, im in tqdm(images, desc="detect", unit="image", disable=not progress, dynamic_ncols=True):
         rgb = ds.read_rgb(sid, im)
@@ -109,6 +168,23 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
         labels = np.asarray(labels).reshape(-1).astype(np.int64)
         if not (len(boxes) == len(scores) == len(labels)):
             raise RuntimeError(f"detector returned {len(boxes)} boxes, {len(scores)} scores, {len(labels)} labels")
+        if classifier is not None:
+            from .boxes import nms_per_class
+            from .classifier import rescore
+
+            t1 = time.perf_counter()
+            probs = classifier.classify(rgb, boxes)
+            boxes, scores, labels, _ = rescore(boxes, scores, labels, probs, classifier.obj_ids,
+                                               conf["label_mix"], conf["label_ratio"], conf["background"])
+            # min_score was the detector's (objectness) threshold: a kept box is not dropped for being split
+            # between labels (an object seen by a confident detector stays, under its plausible labels)
+            keep = nms_per_class(boxes, scores, labels, conf["nms_iou"])[: conf["max_per_image"]]
+            boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+            dt_c = time.perf_counter() - t1
+            dt += dt_c
+            times[-1] = dt
+            if classifier_times is not None:
+                classifier_times.append(dt_c)
         ok = (boxes[:, 2] > 0) & (boxes[:, 3] > 0) & np.isin(labels, sorted(known))
         if conf["agnostic_nms_iou"] < 1.0 and len(boxes):
             from .boxes import nms
@@ -145,14 +221,17 @@ def _source(model, from_json, from_gt: bool) -> str:
 def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False, *,
          scene_ids: list[int] | None = None, model: str | Path | None = None, from_json: str | Path | None = None,
          coco_images: str | Path | None = None, from_gt: bool = False, log=print, progress: bool = True,
-         detector=None) -> dict | None:
+         detector=None, classifier=None) -> dict | None:
     """Run ``cosy detect``; returns the summary (None when ``out`` is up to date and skipped).
 
     model: an exported detector ONNX (default: the shipped one; the source when neither
     ``from_json`` nor ``from_gt`` is given). from_json: a BOP or COCO-results detections file;
     coco_images: the COCO dataset file that maps its image ids (else image_id = scene_id * 1e6 +
     im_id). from_gt: the visible GT boxes. detector: an object with ``detect(rgb, min_score,
-    max_per_image, nms_iou)`` used instead of loading ``model`` (tests, benchmarks).
+    max_per_image, nms_iou)`` used instead of loading ``model`` (tests, benchmarks). classifier:
+    an object like :class:`~cosy_cli.detection.classifier.OnnxClassifier` used instead of the
+    ``classifier`` setting (auto | none | PATH): the second-stage box classifier that relabels and
+    rescores the detector's boxes (model source only).
     """
     t_start = time.perf_counter()
     conf = resolve_conf(conf)
@@ -168,12 +247,31 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
 
     inputs = {"dataset": str(Path(ds.root).resolve()), "split": split, "scene_ids": scene_ids,
               "models_info_sha1": file_sha1(ds.models_info_path), "source": source}
+    clf = None
     if source == "model":
         if detector is None:
             model = model_path(model, SHIPPED_DETECTOR, "detector", needed=True)
             inputs["model"] = {"path": str(Path(model).resolve()), "sha1": file_sha1(model)}
         else:
             inputs["model"] = {"object": f"{type(detector).__module__}.{type(detector).__qualname__}"}
+        if detector is None:
+            from .network import OnnxDetector  # lazy: onnxruntime is only needed here
+
+            providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" \
+                else ["CPUExecutionProvider"]
+            detector = OnnxDetector(model, providers)
+        if classifier is not None:  # an object (tests, benchmarks)
+            clf = classifier
+            conf["classifier"] = "object"
+        elif conf["classifier"] == "auto" and not (
+                inputs["model"].get("path") == str(SHIPPED_DETECTOR.resolve())):
+            clf = None  # auto: the shipped classifier goes with the shipped detector (its rule was chosen for it)
+        else:
+            clf = load_classifier(conf["classifier"], ds.models_info(), getattr(detector, "obj_ids", None),
+                                  ["cuda", "cpu"] if conf["providers"] == "cuda" else ["cpu"], log=log)
+        inputs["classifier"] = None if clf is None else (
+            {"path": str(Path(clf.path).resolve()), "sha1": file_sha1(clf.path)} if hasattr(clf, "path")
+            else {"object": f"{type(clf).__module__}.{type(clf).__qualname__}"})
     elif source == "json":
         inputs["detections"] = {"path": str(Path(from_json).resolve()), "sha1": file_sha1(from_json)}
         inputs["coco_images"] = None if coco_images is None else {"path": str(Path(coco_images).resolve()),
@@ -184,6 +282,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     if source != "gt":  # the detector reads the images; imported boxes are checked against their size
         ds.check_image_files(scene_ids)  # sizes vs camera file/cam_K, from the headers
     times: list[float] = []
+    clf_times: list[float] = []
     if source == "gt":
         d = importers.detections_from_gt(ds, scene_ids, conf["min_visib_fract"])
         dets = d.drop(columns=["gt_index"]).assign(time=-1.0, segmentation=None)
@@ -197,15 +296,12 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         log(f"detect: {n_raw} detections read from {from_json}; {len(raw)} in the chosen scenes; kept {len(dets)} "
             f"(score >= {conf['min_score']:g}, at most {conf['max_per_image']} per image)")
     else:
-        if detector is None:
-            from .network import OnnxDetector  # lazy: onnxruntime is only needed here
-
-            providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" \
-                else ["CPUExecutionProvider"]
-            detector = OnnxDetector(model, providers)
-        dets, times = run_detector(detector, ds, scene_ids, conf, log=log, progress=progress)
-        dets = keep_best(dets, conf["min_score"], conf["max_per_image"])
+        dets, times = run_detector(detector, ds, scene_ids, conf, log=log, progress=progress, classifier=clf,
+                                   classifier_times=clf_times)
+        dets = keep_best(dets, 0.0 if clf is not None else conf["min_score"], conf["max_per_image"])
         what = f"detector {model if model is not None else inputs['model']['object']}"
+        if clf is not None:
+            what += f" + box classifier {getattr(clf, 'path', type(clf).__qualname__)}"
 
     dets = dets.sort_values(["scene_id", "im_id", "score"], ascending=[True, True, False], kind="stable")
     dets = dets.reset_index(drop=True)
@@ -218,6 +314,10 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         "detections_per_object": {str(int(o)): int(n) for o, n in per_obj.items()},
         "time_per_image_s": float(np.mean(times)) if times else None,
         "time_per_image_median_s": float(np.median(times)) if times else None,
+        "classifier": None if clf is None else {
+            "model": inputs["classifier"], "label_mix": conf["label_mix"], "label_ratio": conf["label_ratio"],
+            "background": conf["background"],
+            "time_per_image_s": float(np.mean(clf_times)) if clf_times else None},
         "time_total_s": round(time.perf_counter() - t_start, 3),
     }
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -172,6 +172,10 @@ def run_scene(task: dict) -> dict:
             inputs = {"source": task["source"], "file": _digest_of(src), "coco_images": _digest_of(task.get("coco_images"))}
             if task["source"] == "gt":
                 inputs["gt_info"] = _digest_of(BopDataset(dataset, split).scene_file(sid, "scene_gt_info"))
+            if task["source"] == "model":  # the box classifier that follows the detector (its file, not its name)
+                clf = str(confs["detect"].get("classifier", "auto"))
+                inputs["classifier"] = _digest_of(detect_stage.SHIPPED_CLASSIFIER if clf == "auto"
+                                                  else None if clf == "none" else clf)
             unit("detect", confs["detect"], inputs, ["detections.json"], lambda: detect_stage.main(
                 confs["detect"], dataset, split, dets, overwrite=True, scene_ids=[sid],
                 model=src if task["source"] == "model" else None,

@@ -1,0 +1,246 @@
+"""The second-stage box classifier of `cosy detect`: crops, the rescoring rule, the stage setting,
+the shipped model on rendered crops, bad classifier files."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cosy_cli.cli.main import cli
+from cosy_cli.detection import stage
+from cosy_cli.detection.classifier import (
+    ClassifierConfig, OnnxClassifier, build_network, crop_boxes, export_onnx, rescore, xywh_to_xyxy_continuous,
+)
+from cosy_cli.errors import CosyError
+from cosy_cli.io import bop
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+SCENE = SAMPLES / "test" / "000001"
+IDS = [1, 2, 3, 4, 5, 6, 7, 8]
+
+
+def _run(args):
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+@pytest.fixture(scope="module")
+def untrained(tmp_path_factory) -> Path:
+    """An untrained classifier of the sample objects, exported (small: a real ONNX file)."""
+    import torch
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("clf") / "clf.onnx"
+    export_onnx(build_network(ClassifierConfig(obj_ids=IDS, crop=32, widths=(8, 8, 8, 8))).eval(), path)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+# crops
+# ------------------------------------------------------------------------------------------------
+def test_crop_is_centred_on_the_box_with_the_margin():
+    img = np.zeros((200, 300, 3), np.uint8)
+    img[50:90, 100:180] = 255  # columns 100..179, rows 50..89: continuous box [100, 50, 180, 90]
+    c = crop_boxes(img, np.array([[100.0, 50.0, 180.0, 90.0]]), 64, 1.25)[0]
+    # side 1.25 x 80 = 100 image px -> 64 px: the white box spans 80 x 0.64 = 51.2 px wide, 25.6 tall
+    white = c[..., 0] > 127
+    cols, rows = np.flatnonzero(white.any(0)), np.flatnonzero(white.any(1))
+    assert abs((cols[0] + cols[-1] + 1) / 2 - 32) <= 0.6 and abs((rows[0] + rows[-1] + 1) / 2 - 32) <= 0.6
+    assert abs(len(cols) - 51.2) <= 1.5 and abs(len(rows) - 25.6) <= 1.5
+    # a box at the image corner: the outside is grey
+    c = crop_boxes(img, np.array([[0.0, 0.0, 20.0, 20.0]]), 32, 1.5)[0]
+    assert (c[0, 0] == 127).all()
+    np.testing.assert_allclose(xywh_to_xyxy_continuous([[100, 50, 79, 39]]), [[100, 50, 180, 90]])
+
+
+# ------------------------------------------------------------------------------------------------
+# rescoring rule
+# ------------------------------------------------------------------------------------------------
+def _probs(rows):
+    p = np.array(rows, float)
+    return np.concatenate([p, np.zeros((len(p), 1))], 1)  # background 0
+
+
+def test_rescore_keeps_one_label_when_sure_and_two_when_unsure():
+    boxes = np.array([[0, 0, 10, 10], [50, 50, 10, 10]], float)
+    one = np.zeros(8)
+    one[2] = 0.95
+    one[0] = 0.05
+    unsure = np.zeros(8)
+    unsure[5], unsure[6] = 0.55, 0.45  # objects 6 and 7
+    b, s, lab, src = rescore(boxes, np.array([0.9, 0.8]), np.array([3, 7]), _probs([one, unsure]), IDS,
+                             label_mix=0.0, label_ratio=0.2, background=0.0)
+    got = sorted(zip(src.tolist(), lab.tolist(), np.round(s, 4).tolist()))
+    assert got == [(0, 3, round(0.9 * 0.95, 4)), (1, 6, round(0.8 * 0.55, 4)), (1, 7, round(0.8 * 0.45, 4))]
+    assert np.all(np.diff(s) <= 0)  # best first
+    np.testing.assert_array_equal(b[src == 1], np.repeat(boxes[1:2], 2, 0))
+    # label_ratio 1: the best label only; label_mix: the detector's label counts too
+    _, s, lab, _ = rescore(boxes, np.array([0.9, 0.8]), np.array([3, 7]), _probs([one, unsure]), IDS,
+                           label_mix=0.5, label_ratio=1.0)
+    assert lab.tolist() == [3, 7] and np.allclose(s, [0.9 * (0.5 * 0.95 + 0.5), 0.8 * (0.5 * 0.45 + 0.5)])
+
+
+def test_rescore_background_and_unknown_labels():
+    p = np.zeros((2, 9))
+    p[:, 0] = 0.2
+    p[:, 8] = 0.8  # mostly background
+    _, s, lab, _ = rescore(np.zeros((2, 4)), np.array([1.0, 0.5]), np.array([1, 42]), p, IDS, background=1.0)
+    # box 0: objectness 1 x (1 - 0.8), label 1 only (the only object with p > 0); label 42 unknown: as it came
+    assert sorted(zip(lab.tolist(), np.round(s, 6).tolist())) == [(1, 0.2), (42, 0.5)]
+    with pytest.raises(ValueError, match="columns"):
+        rescore(np.zeros((1, 4)), np.ones(1), np.ones(1), np.ones((1, 5)), IDS)
+
+
+# ------------------------------------------------------------------------------------------------
+# the stage setting
+# ------------------------------------------------------------------------------------------------
+class TwoBoxDetector:
+    """Two boxes per image, both labelled 6 (a look-alike pair seen as one object)."""
+
+    obj_ids = IDS
+
+    def detect(self, rgb, min_score, max_per_image, nms_iou):
+        return np.array([[100, 100, 60, 40], [300, 200, 50, 50]], float), np.array([0.9, 0.7]), np.array([6, 6])
+
+
+class FixedClassifier:
+    """Says 6 or 7 (0.6 / 0.4) for the first box, 2 for the others."""
+
+    obj_ids = IDS
+
+    def __init__(self):
+        self.calls = 0
+
+    def classify(self, rgb, boxes):
+        self.calls += 1
+        p = np.zeros((len(boxes), 9))
+        p[:, 1] = 1.0
+        if len(boxes) and boxes[0][0] == 100:
+            p[0] = 0
+            p[0, 5], p[0, 6] = 0.6, 0.4
+        return p
+
+
+def test_detect_with_and_without_a_classifier(tmp_path):
+    s0 = stage.main({"min_score": 0.1, "classifier": "none"}, SAMPLES, "test", tmp_path / "a.json", scene_ids=[1],
+                    detector=TwoBoxDetector(), progress=False)
+    d0 = bop.read_detections(tmp_path / "a.json")
+    assert s0["classifier"] is None and len(d0) == 16 and set(d0["obj_id"]) == {6}
+    clf = FixedClassifier()
+    s1 = stage.main({"min_score": 0.1, "label_ratio": 0.5, "label_mix": 0.0}, SAMPLES, "test", tmp_path / "b.json",
+                    scene_ids=[1], detector=TwoBoxDetector(), classifier=clf, progress=False)
+    d1 = bop.read_detections(tmp_path / "b.json")
+    assert clf.calls == 1 + 8  # warm-up + one per image
+    one = d1[d1["im_id"] == d1["im_id"].iloc[0]].sort_values("score", ascending=False)
+    assert one["obj_id"].tolist() == [2, 6, 7]
+    np.testing.assert_allclose(one["score"], [0.7, 0.9 * 0.6, 0.9 * 0.4])
+    assert s1["classifier"]["label_ratio"] == 0.5 and s1["classifier"]["time_per_image_s"] >= 0
+    # min_score is the detector's threshold: a box it kept stays under all its plausible labels
+    stage.main({"min_score": 0.5, "label_ratio": 0.5, "label_mix": 0.0}, SAMPLES, "test", tmp_path / "c.json",
+               scene_ids=[1], detector=TwoBoxDetector(), classifier=FixedClassifier(), progress=False)
+    d2 = bop.read_detections(tmp_path / "c.json")
+    assert len(d2) == 24 and np.isclose(d2["score"].min(), 0.9 * 0.4)
+    doc = json.loads((tmp_path / "b.meta.json").read_text())
+    assert doc["inputs"]["classifier"]["object"].endswith("FixedClassifier")
+    assert "box classifier" in doc["source"]
+
+
+def test_classifier_setting_through_the_command_line(tmp_path, untrained):
+    """A real (untrained) exported detector + classifier through `cosy detect --classifier PATH`."""
+    from cosy_cli.detection.model import CenterNet, DetectorConfig
+    from cosy_cli.detection.train import export_onnx as export_detector
+
+    det = tmp_path / "det.onnx"
+    export_detector(CenterNet(DetectorConfig(obj_ids=IDS, input_size=(64, 48))), det)
+    out = tmp_path / "d.json"
+    r = _run(["detect", "--scene", SCENE, "--model", det, "--classifier", untrained, "--label-ratio", 0.5,
+              "--min-score", 0, "--max-per-image", 4, "--out", out, "--quiet"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "d.meta.json").read_text())
+    assert doc["conf"]["classifier"] == str(untrained) and doc["conf"]["label_ratio"] == 0.5
+    assert doc["inputs"]["classifier"]["sha1"] and doc["classifier"]["time_per_image_s"] > 0
+    d = bop.read_detections(out)
+    assert 0 < len(d) <= 8 * 4 and set(d["obj_id"]) <= set(IDS)
+    # auto with a detector that is not the shipped one: no classifier
+    r = _run(["detect", "--scene", SCENE, "--model", det, "--min-score", 0, "--out", tmp_path / "e.json", "--quiet"])
+    assert r.exit_code == 0 and json.loads((tmp_path / "e.meta.json").read_text())["classifier"] is None
+
+
+def test_bad_classifier_files_are_user_errors(tmp_path, untrained):
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not an onnx file")
+    with pytest.raises(CosyError, match="not a readable ONNX"):
+        OnnxClassifier(junk)
+    with pytest.raises(CosyError, match="not found"):
+        OnnxClassifier(tmp_path / "missing.onnx")
+    with pytest.raises(CosyError, match="cosy_classifier"):  # the detector is an ONNX but not a classifier
+        OnnxClassifier(stage.SHIPPED_DETECTOR)
+    # a classifier of other objects
+    other = tmp_path / "other.onnx"
+    export_onnx(build_network(ClassifierConfig(obj_ids=[1, 2], crop=32, widths=(8, 8, 8, 8))).eval(), other)
+    with pytest.raises(CosyError, match="knows objects"):
+        stage.load_classifier(str(other), IDS, IDS)
+    assert stage.load_classifier("none", IDS) is None
+    assert stage.load_classifier(str(untrained), IDS, IDS).obj_ids == IDS
+    r = _run(["detect", "--scene", SCENE, "--classifier", junk, "--out", tmp_path / "d.json", "--quiet"])
+    assert r.exit_code == 2 and "not a readable ONNX" in r.output
+
+
+# ------------------------------------------------------------------------------------------------
+# the shipped classifier
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.skipif(not stage.SHIPPED_CLASSIFIER.is_file(), reason="no classifier shipped")
+def test_shipped_classifier_labels_rendered_crops():
+    """Crops of the visible boxes of rendered scenes (the detector's domain-randomised generator,
+    a seed no training used): far above chance (1/9), and the shipped rule on the GT boxes."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    from cosy_cli.detection.data import DetectionSampleGenerator
+    from cosy_cli.detection.train import load_dataset_objects
+
+    clf = OnnxClassifier(stage.SHIPPED_CLASSIFIER)
+    assert clf.obj_ids == IDS
+    meshes, K, size = load_dataset_objects(SAMPLES)
+    gen = DetectionSampleGenerator(meshes, K, size, input_size=size, seed=123456, max_objects=6, min_visib=0.5)
+    try:
+        b = gen.batch(6)
+    finally:
+        gen.close()
+    right = total = 0
+    for img, boxes, labels in zip(b["images"], b["boxes"], b["labels"]):
+        if not len(boxes):
+            continue
+        p = clf.classify_crops(crop_boxes(img, boxes, clf.config.crop, clf.config.margin))
+        assert p.shape == (len(boxes), 9) and np.allclose(p.sum(1), 1, atol=1e-4)
+        right += int((p.argmax(1) == labels).sum())
+        total += len(labels)
+    assert total >= 12 and right / total >= 0.6, (right, total)
+
+
+# ------------------------------------------------------------------------------------------------
+# training command
+# ------------------------------------------------------------------------------------------------
+def test_train_resume_and_export_a_classifier(tmp_path):
+    """`cosy train classifier` (backbone of the shipped detector), --resume, `cosy export`: an ONNX
+    the runner loads."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    run = tmp_path / "run"
+    base = ["train", "classifier", "--dataset", SAMPLES, "--out", run, "--batch-size", 8, "--checkpoint-every", 1,
+            "--init", stage.SHIPPED_DETECTOR, "--quiet"]
+    r = _run(base + ["--iterations", 2])
+    assert r.exit_code == 0, r.output
+    assert "BatchNorms recalibrated" in r.output and (run / "checkpoint.pt").is_file()
+    r = _run(base + ["--iterations", 2])
+    assert r.exit_code == 2 and "--resume" in r.output
+    r = _run(base + ["--iterations", 3, "--resume"])
+    assert r.exit_code == 0, r.output
+    assert [row.split(",")[0] for row in (run / "log.csv").read_text().split()[1:]] == ["1", "2", "3"]
+    r = _run(["export", "--run", run, "--out", tmp_path / "c.onnx"])
+    assert r.exit_code == 0, r.output
+    clf = OnnxClassifier(tmp_path / "c.onnx")
+    assert clf.obj_ids == IDS and clf.config.arch == "detector"
+    p = clf.classify(np.zeros((480, 640, 3), np.uint8), np.array([[10, 10, 50, 60], [600, 400, 80, 120]], float))
+    assert p.shape == (2, 9) and np.allclose(p.sum(1), 1, atol=1e-4)
