@@ -258,32 +258,15 @@ class OnnxClassifier:
     ``obj_ids``, ``config`` (:class:`ClassifierConfig`), ``path``."""
 
     def __init__(self, path: str | Path, providers: Sequence[str] = ("cpu",), threads: int | None = None):
-        from .network import _provider_names
+        from ..onnxrt import open_session
 
         path = Path(path)
-        if not path.is_file():
-            raise CosyError("box classifier model not found (train one with `cosy train classifier`, export it with "
-                            "`cosy export`, or use --classifier none)", path=path)
-        import onnxruntime as ort
-
-        names = _provider_names(providers)
-        use = [p for p in names if p in set(ort.get_available_providers())]
-        if "CPUExecutionProvider" not in use:
-            use.append("CPUExecutionProvider")
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = int(threads)
-        opts.log_severity_level = 3
+        self.session, d = open_session(
+            path, METADATA_KEY, providers, threads,
+            missing=" (box classifier: train one with `cosy train classifier`, export it with `cosy export`, "
+                    "or use --classifier none)",
+            not_ours="not a box classifier exported by cosy")
         try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=use)
-        except Exception as e:
-            raise CosyError(f"not a readable ONNX model: {e}", path=path) from None
-        meta = self.session.get_modelmeta().custom_metadata_map
-        if METADATA_KEY not in meta:
-            raise CosyError(f"ONNX model has no '{METADATA_KEY}' metadata: not a box classifier exported by cosy",
-                            path=path)
-        try:
-            d = json.loads(meta[METADATA_KEY])
             self.config = ClassifierConfig.from_dict(d)
             if d.get("kind") != "classifier" or not self.config.obj_ids or self.config.crop < 8:
                 raise ValueError("kind / obj_ids / crop")

@@ -23,22 +23,11 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import CosyError
+from ..onnxrt import open_session
 from .boxes import nms_per_class
 
 METADATA_KEY = "cosy_detector"
-PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 TOP_K = 100  # peaks decoded per image before NMS
-
-
-def _provider_names(providers: Sequence[str]) -> list[str]:
-    if isinstance(providers, str):
-        providers = [providers]
-    out = []
-    for p in providers:
-        name = PROVIDERS.get(str(p).lower(), str(p))
-        if name not in out:
-            out.append(name)
-    return out or ["CPUExecutionProvider"]
 
 
 class OnnxDetector:
@@ -54,30 +43,12 @@ class OnnxDetector:
 
     def __init__(self, path: str | Path, providers: Sequence[str] = ("cpu",), threads: int | None = None):
         path = Path(path)
-        if not path.is_file():
-            raise CosyError("detector model not found: train one with `cosy train detector --dataset DIR --out RUN` "
-                            "and export it with `cosy export --run RUN --out detector.onnx`", path=path)
-        import onnxruntime as ort
-
-        names = _provider_names(providers)
-        available = set(ort.get_available_providers())
-        use = [p for p in names if p in available]
-        if "CPUExecutionProvider" not in use:
-            use.append("CPUExecutionProvider")
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = int(threads)
-        opts.log_severity_level = 3
+        self.session, cfg = open_session(
+            path, METADATA_KEY, providers, threads,
+            missing=": train a detector with `cosy train detector --dataset DIR --out RUN` and export it with "
+                    "`cosy export --run RUN --out detector.onnx`",
+            not_ours="not a detector exported by cosy (`cosy export` of a `cosy train detector` run)")
         try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=use)
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise CosyError(f"not a readable ONNX model: {e}", path=path) from None
-        meta = self.session.get_modelmeta().custom_metadata_map
-        if METADATA_KEY not in meta:
-            raise CosyError(f"ONNX model has no '{METADATA_KEY}' metadata: not a detector exported by cosy "
-                            "(`cosy export` of a `cosy train detector` run)", path=path)
-        try:
-            cfg = json.loads(meta[METADATA_KEY])
             self.obj_ids: list[int] = [int(o) for o in cfg["obj_ids"]]
             self.input_size: tuple[int, int] = (int(cfg["input_size"][0]), int(cfg["input_size"][1]))
             self.stride = int(cfg["stride"])

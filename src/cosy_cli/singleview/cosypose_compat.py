@@ -357,7 +357,7 @@ class OnnxCosyPoseNet(_CardNet):
     """An ONNX file written by :func:`export_onnx`, run by onnxruntime: ``net(x)`` -> (B, 9)."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int | None = None):
-        from .onnx import open_session
+        from ..onnxrt import open_session
 
         self.session, self.card = open_session(path, METADATA_KEY, providers, threads,
                                                not_ours="not a CosyPose network exported by `cosy export --run`")

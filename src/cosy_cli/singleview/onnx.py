@@ -8,15 +8,14 @@ backbone, n_inputs, crop_size) is stored in the model's metadata under ``cosy_po
 from __future__ import annotations
 
 import copy
-import json
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..errors import CosyError
 from ..io.atomic import atomic_path
+from ..onnxrt import open_session, stamp_card  # noqa: F401 (open_session: also imported from here)
 from .model import PoseNet, PoseNetConfig
 
 INPUT_NAME = "input"
@@ -55,40 +54,6 @@ def export_onnx(model: PoseNet, path: str | Path, crop_size: tuple[int, int] | N
                                   opset_version=opset, dynamo=False, external_data=False)
         stamp_card(tmp, METADATA_KEY, cfg.to_dict())
     return path
-
-
-def stamp_card(path: str | Path, key: str, card: dict) -> None:
-    """Store ``card`` (JSON) in the ONNX file's metadata under ``key`` (what :func:`open_session` reads)."""
-    import onnx
-
-    m = onnx.load(str(path))
-    entry = m.metadata_props.add()
-    entry.key = key
-    entry.value = json.dumps(card)
-    onnx.save(m, str(path))
-
-
-def open_session(path: str | Path, metadata_key: str, providers: list[str] | None = None,
-                 threads: int | None = None, *, missing: str = "", not_ours: str = "not exported by cosy"):
-    """An onnxruntime session over ``path`` and the JSON stored under ``metadata_key`` in its
-    metadata (what the network is). User errors (missing file, unreadable model, no such
-    metadata) raise CosyError naming the file; ``missing`` / ``not_ours`` say what to do."""
-    import onnxruntime as ort
-
-    path = Path(path)
-    if not path.is_file():
-        raise CosyError(f"ONNX model not found{missing}", path=path)
-    opts = ort.SessionOptions()
-    if threads:
-        opts.intra_op_num_threads = int(threads)
-    try:
-        session = ort.InferenceSession(str(path), sess_options=opts, providers=providers or ["CPUExecutionProvider"])
-    except Exception as e:  # onnxruntime raises its own exception types
-        raise CosyError(f"not a readable ONNX model: {e}", path=path) from None
-    meta = session.get_modelmeta().custom_metadata_map
-    if metadata_key not in meta:
-        raise CosyError(f"ONNX model has no '{metadata_key}' metadata: {not_ours}", path=path)
-    return session, json.loads(meta[metadata_key])
 
 
 class OnnxPoseNet:
