@@ -17,7 +17,11 @@ Usage::
     python benchmarks/bench_realdata_multiview.py [--seeds 0,1,2] [--subset even|odd|all]
         [--own-lmo CANDS.csv] [--own-ycbv CANDS.csv] [--own-hypotheses 1,3,5]
         [--set match.KEY=V --set refine.KEY=V]
-        [--kinds 1/2,3/5,5/8g] [--work DIR]
+        [--kinds 1/2,3/5,5/8g] [--work DIR] [--image-check auto|on|none]
+
+``--image-check`` sets ``cosy refine``'s image check (each refined object scored against each
+view's RGB image, :mod:`cosy_cli.multiview.image_check`; default: refine's own, ``auto``);
+``none`` gives the refinement without it.
 
 Prints a Markdown table (and writes it to ``results/realdata_multiview.md`` unless ``--no-write``).
 """
@@ -148,12 +152,16 @@ def main(argv=None) -> None:
     ap.add_argument("--no-ycbv", action="store_true")
     ap.add_argument("--ycbv", type=Path, default=None, help="the YCB-V frames [../shared/realdata/ycbv_0000]")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--image-check", choices=["auto", "on", "none"], default=None,
+                    help="refine.image_check (default: refine's own setting, auto)")
     args = ap.parse_args(argv)
     lmo = REALDATA / "lmo_dev"
     if not lmo.is_dir():
         print(f"skipped: {lmo} is absent (real data lives outside the repository)")
         return
     mc, rc = parse_set(args.set)
+    if args.image_check is not None:
+        rc["image_check"] = args.image_check
     work = args.work or Path(tempfile.mkdtemp(prefix="cosy_realmv_"))
     work.mkdir(parents=True, exist_ok=True)
     ds = BopDataset(lmo, "test")

@@ -41,10 +41,15 @@ from .common import dataset_options, user_errors
 @click.option("--exclusion-frac", type=click.FloatRange(min=0), default=None,
               help="Drop the weaker of two objects (any labels) whose centres are closer than this fraction of "
                    "the smaller diameter: two solids cannot overlap (0: off) [0.5].")
+@click.option("--image-check", type=click.Choice(["auto", "on", "none"]), default=None,
+              help="Check each refined object in each view against the view's RGB image (beyond the paper): "
+                   "the refined pose, its contour alignment and the view's own candidates are scored by rendering; "
+                   "the best is output (scene.json records which per view). auto: when the images exist; on: "
+                   "required [auto].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, output, explained_frac,
-           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, overwrite: bool) -> None:
+           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, overwrite: bool) -> None:
     """Refine cameras and objects jointly per group (CosyPose stage 3): every object in every placed view.
 
     Writes OUT atomically; skips when OUT is complete and up to date (unless --overwrite).
@@ -57,7 +62,7 @@ def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss
     c = refine_stage.resolve_conf(None, iterations=iterations, loss_threshold_px=loss_threshold_px,
                                   output=output or ("scene+candidates" if keep_unmatched else None),
                                   explained_frac=explained_frac, min_agreeing=min_agreeing, nms_mm=nms_mm,
-                                  exclusion_frac=exclusion_frac)
+                                  exclusion_frac=exclusion_frac, image_check=image_check)
     refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=click.echo)
 
 
