@@ -43,9 +43,10 @@ from .common import dataset_options, user_errors
                    "the smaller diameter: two solids cannot overlap (0: off) [0.5].")
 @click.option("--image-check", type=click.Choice(["auto", "on", "none"]), default=None,
               help="Check each refined object in each view against the view's RGB image (beyond the paper): "
-                   "the refined pose, its contour alignment and the view's own candidates are scored by rendering; "
-                   "the best is output (scene.json records which per view). auto: when the images exist; on: "
-                   "required [auto].")
+                   "the refined pose and the view's own candidates are scored by rendering; a candidate that "
+                   "clearly disagrees (> 0.1 x diameter) and scores 0.02 higher replaces the refined pose "
+                   "(scene.json records which per view; in `cosy run`, --set refine.image_check_align=true adds a contour "
+                   "alignment of the refined pose). auto: when the images exist; on: required [auto].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, output, explained_frac,
