@@ -306,3 +306,40 @@ def test_vote_only_members_are_not_measurements_in_refine(tables, tmp_path):
     used = {int(c) for g in json.loads((r_out / "scene.json").read_text())["groups"]
             for o in g["objects"] for c in o["cand_ids"]}
     assert used and not (used & vote_only)
+
+
+def test_one_box_under_two_grouped_labels_is_one_candidate(tables):
+    """The box classifier emits an unsure box under 6 and 7: the weaker copy is left out before
+    matching (label groups on), so the two labels do not link two objects through one view; other
+    labels, far-apart boxes and 'none' are untouched."""
+    ds = BopDataset(tables, "test")
+    diam = {o: float(i.diameter) for o, i in ds.models_info().items()}
+    view, obj, T, six, _ = _four_views(mislabel=False)
+    # every view's object 6 also emitted as 7 (same pose + 2 mm), scored lower except in view 1
+    dup_T = T[six].copy()
+    dup_T[:, :3, 3] += 2.0
+    view2 = np.concatenate([view, view[six]])
+    obj2 = np.concatenate([obj, np.full(len(six), 7)])
+    T2 = np.concatenate([T, dup_T])
+    score = np.full(len(view2), 0.8)
+    score[len(view):] = 0.3
+    score[len(view) + 1] = 0.9  # view 1: the 7 is the better-scored copy
+    auto = lg.resolve("auto", ds)
+    drop = lg.same_detection_duplicates(view2, obj2, T2, score, auto, diam)
+    expected = np.zeros(len(view2), dtype=bool)
+    expected[len(view) + np.array([0, 2, 3])] = True  # the weaker 7 copies
+    expected[six[1]] = True  # view 1: the weaker 6
+    assert np.array_equal(drop, expected)
+    assert not lg.same_detection_duplicates(view2, obj2, T2, score, lg.resolve("none", ds), diam).any()
+    far = T2.copy()
+    far[len(view):, :3, 3] += 0.2 * max(diam[6], diam[7])  # another object, not the same box
+    assert not lg.same_detection_duplicates(view2, obj2, far, score, auto, diam).any()
+    # after leaving them out, the object is matched whole, voted 6 (3 views of 0.8 against 1 of 0.9)
+    keep = ~drop
+    table = match_stage.load_label_table(ds, sorted(ds.models_info()), groups=auto)
+    r = match_group(view2[keep], table.index_of(obj2[keep]), T2[keep], 4, table, MatchParams())
+    kept6 = np.flatnonzero(np.isin(np.flatnonzero(keep), np.concatenate([six, len(view) + np.arange(len(six))])))
+    o = r.object_id[kept6]
+    assert len(kept6) == 4 and (o == o[0]).all() and o[0] >= 0
+    labels, _ = lg.vote_labels(r.object_id, obj2[keep], score[keep], r.cand_fit)
+    assert labels[o[0]] == 6

@@ -387,6 +387,39 @@ def compat_arrays(resolved: Resolved, obj_ids) -> tuple[np.ndarray, np.ndarray]:
     return compat, align
 
 
+DUPLICATE_FRAC = 0.1  # same-view candidates of grouped labels closer than this x diameter: one detection
+
+
+def same_detection_duplicates(view: np.ndarray, obj_id: np.ndarray, T_cam_obj: np.ndarray, score: np.ndarray,
+                              resolved: Resolved, diameter: dict, frac: float = DUPLICATE_FRAC) -> np.ndarray:
+    """(n,) bool: candidates that repeat a better-scored candidate of the same view under another
+    label of its group. A detector that is unsure between look-alikes emits one box under both
+    labels (``cosy detect``'s box classifier does so on purpose), and stage 1 gives both nearly the
+    same pose; matched as two candidates, they would link the look-alikes' objects to each other
+    through one view and split the views' associations. The better-scored one stays; the label
+    vote across views then decides. Two candidates are the same detection when their labels form
+    an allowed pair and their model origins (b's mapped into a's frame by the pair's alignment)
+    are closer than ``frac`` x the larger diameter (mm)."""
+    n = len(obj_id)
+    drop = np.zeros(n, dtype=bool)
+    if n < 2 or not resolved.pairs:
+        return drop
+    for f in resolved.pairs:
+        ia = np.flatnonzero(obj_id == f.a)
+        ib = np.flatnonzero(obj_id == f.b)
+        if not len(ia) or not len(ib):
+            continue
+        # b's pose as a pose of a's model: T_cam_a = T_cam_b inv(T_a_b); its origin is where a's would be
+        Tb_as_a = T_cam_obj[ib] @ np.linalg.inv(f.T_a_b)
+        d = np.linalg.norm(T_cam_obj[ia][:, None, :3, 3] - Tb_as_a[None, :, :3, 3], axis=2)
+        same = (view[ia][:, None] == view[ib][None, :]) & (d < frac * max(diameter[f.a], diameter[f.b]))
+        a_i, b_j = np.nonzero(same)
+        worse_a = score[ia[a_i]] < score[ib[b_j]]
+        drop[ia[a_i[worse_a]]] = True
+        drop[ib[b_j[~worse_a]]] = True
+    return drop
+
+
 # --------------------------------------------------------------------------------------------
 # the vote
 # --------------------------------------------------------------------------------------------

@@ -527,6 +527,7 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
                          adaptive_k=conf["adaptive_k"], weak_links=conf["weak_links"],
                          cross_label_hypotheses=conf["cross_label_hypotheses"])
     lab_all = table.index_of(objs) if used else np.zeros(0, dtype=np.int64)
+    diameters = {o: float(ds.models_info()[o].diameter) for o in used} if resolved.pairs else {}
     # candidates of each (scene, im)
     key = scenes * (1 << 32) + ims
     order = np.argsort(key, kind="stable")
@@ -594,8 +595,13 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
             idx = np.sort(np.concatenate([order[a:b] for a, b in zip(lo, hi)]))
             group_of[idx] = gi
             idx = idx[score[idx] >= conf["score_threshold"]]
+            view = np.searchsorted(np.array(g["im_ids"]), ims[idx])
+            dup = label_groups.same_detection_duplicates(view, objs[idx], cands.T_cam_obj[idx], score[idx], resolved,
+                                                         diameters)
+            g["duplicate_labels"] = [int(c) for c in idx[dup]]  # one box under two labels: the weaker left out
+            idx, view = idx[~dup], view[~dup]
             g["cand_idx"] = idx
-            g["view"] = np.searchsorted(np.array(g["im_ids"]), ims[idx])
+            g["view"] = view
             g["T_cw"] = None
             if conf["known_cameras"]:
                 cams = ds.scene_camera(s)
@@ -692,6 +698,7 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
             "scene_id": g["scene_id"], "group_id": g["group_id"], "im_ids": im_ids,
             "n_candidates": int(len(members_all)), "objects": objects,
             "discarded": [int(c) for c in members_all if object_id[c] < 0],
+            "duplicate_labels": g.get("duplicate_labels", []),  # discarded: one box under two grouped labels
             "view_pairs": pairs, "time_s": round(g["time_s"], 6),
         }
         if len(res.pair_views):
