@@ -189,3 +189,30 @@ def test_set_overrides_reach_the_stage_settings(tmp_path, candidates):
     assert confs["match"]["threshold_mm"] == 30 and confs["match"]["views_per_group"] == 4
     groups = json.loads((tmp_path / "r" / "scenes" / "000001" / "match" / "groups.json").read_text())
     assert len(groups["groups"]) == 2
+
+
+def test_code_version_follows_the_package_files_not_the_commit(tmp_path, monkeypatch):
+    """The code version in every unit key is a digest of the package's files: editing one (even
+    uncommitted) changes it, the same files give the same version wherever they lie."""
+    import cosy_cli
+
+    pkg = Path(cosy_cli.__file__).resolve().parent
+    copy = tmp_path / "cosy_cli"
+    shutil.copytree(pkg, copy, ignore=shutil.ignore_patterns("__pycache__", "*.onnx"))
+    (copy / "assets").mkdir(exist_ok=True)
+
+    def version_of(root: Path) -> str:
+        monkeypatch.setattr(units, "__file__", str(root / "pipeline" / "units.py"))
+        units.code_version.cache_clear()
+        try:
+            return units.code_version()
+        finally:
+            units.code_version.cache_clear()
+
+    v1 = version_of(copy)
+    assert v1 == version_of(copy) and v1.startswith(cosy_cli.__version__ + "+")
+    (copy / "conf.py").write_text((copy / "conf.py").read_text() + "\n# an edit\n")
+    v2 = version_of(copy)
+    assert v2 != v1
+    (copy / "notes.txt").write_text("not code")  # neither code nor a model: no new version
+    assert version_of(copy) == v2

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -26,15 +25,17 @@ RECORDS = ".cosy"
 
 @lru_cache(maxsize=1)
 def code_version() -> str:
-    """``<version>+<git commit>`` when running from a git checkout, else the package version."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).parent,
-                              capture_output=True, text=True, timeout=5)
-        if head.returncode == 0 and head.stdout.strip():
-            return f"{__version__}+{head.stdout.strip()}"
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return __version__
+    """``<version>+<sha1 of the code>``: the package version and a digest of every source file and
+    shipped model of the installed ``cosy_cli`` package (names and contents). Any change to the
+    code that runs, committed or not, makes a new version; a change elsewhere (README, tests,
+    benchmarks) does not, so cached stages are not recomputed for it."""
+    root = Path(__file__).resolve().parents[1]  # the cosy_cli package
+    h = hashlib.sha1()
+    for f in sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in (".py", ".onnx", ".json")
+                    and "__pycache__" not in p.parts):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(file_sha1(f).encode())
+    return f"{__version__}+{h.hexdigest()[:12]}"
 
 
 def path_digest(path: str | Path) -> str | None:
