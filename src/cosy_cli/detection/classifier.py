@@ -123,9 +123,7 @@ def build_network(config: ClassifierConfig):
     import torch
     from torch import nn
 
-    def cbr(cin, cout, stride=1):
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout),
-                             nn.ReLU(inplace=True))
+    from .model import _cbr as cbr, backbone
 
     class BoxClassifier(nn.Module):
         def __init__(self, cfg: ClassifierConfig):
@@ -139,14 +137,8 @@ def build_network(config: ClassifierConfig):
                 self.features = nn.Sequential(*layers)
                 n_feat = cin
             else:  # the detector's backbone (same module names as CenterNet: stem, stages)
-                ch, dp = cfg.widths, cfg.depth
-                self.stem = cbr(3, ch[0], 2)
-                stages, prev = [], ch[0]
-                for c, d in zip(ch[1:], dp):
-                    stages.append(nn.Sequential(cbr(prev, c, 2), *[cbr(c, c) for _ in range(d)]))
-                    prev = c
-                self.stages = nn.ModuleList(stages)
-                n_feat = 2 * (ch[-1] + ch[-2])
+                self.stem, self.stages = backbone(cfg.widths, cfg.depth)
+                n_feat = 2 * (cfg.widths[-1] + cfg.widths[-2])
             self.dropout = nn.Dropout(0.2)
             self.fc = nn.Linear(n_feat, cfg.n_classes)
             self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))

@@ -108,6 +108,18 @@ def _cbr(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
 
 
+def backbone(channels, depth) -> tuple[nn.Sequential, nn.ModuleList]:
+    """The detector's backbone: (stem (stride 2, ``channels[0]``), stages (each one stride-2 conv
+    to ``channels[i + 1]`` and ``depth[i]`` more convs)). The box classifier builds the same
+    modules under the same names, so it can start from a detector's weights."""
+    stem = _cbr(3, channels[0], 2)
+    stages, prev = [], channels[0]
+    for c, d in zip(channels[1:], depth):
+        stages.append(nn.Sequential(_cbr(prev, c, 2), *[_cbr(c, c) for _ in range(d)]))
+        prev = c
+    return stem, nn.ModuleList(stages)
+
+
 class CenterNet(nn.Module):
     """The detector: ``forward(x)`` with x (B, 3, H, W) in [0, 1] -> (heat logits (B, C, h, w),
     box raw (B, 4, h, w)); see the module docstring."""
@@ -115,13 +127,8 @@ class CenterNet(nn.Module):
     def __init__(self, config: DetectorConfig):
         super().__init__()
         self.config = config
-        ch, dp = config.channels, config.depth
-        self.stem = _cbr(3, ch[0], 2)
-        stages, prev = [], ch[0]
-        for c, d in zip(ch[1:], dp):
-            stages.append(nn.Sequential(_cbr(prev, c, 2), *[_cbr(c, c) for _ in range(d)]))
-            prev = c
-        self.stages = nn.ModuleList(stages)
+        ch = config.channels
+        self.stem, self.stages = backbone(ch, config.depth)
         self.first_level = {4: 0, 8: 1, 16: 2}[config.stride]  # index in stages of the output stride
         used = ch[1 + self.first_level:]
         self.laterals = nn.ModuleList([nn.Conv2d(c, config.fpn, 1) for c in used])
