@@ -61,6 +61,7 @@ import numpy as np
 
 from ..errors import CosyError
 from ..geometry.camera import crop_affine, crop_intrinsics
+from ..geometry.rotations import axis_angle_to_matrix
 
 
 @dataclass
@@ -106,16 +107,6 @@ class ContourResult:
     moved: np.ndarray
     matches: np.ndarray
     times: dict = field(default_factory=dict)
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    th = np.linalg.norm(w, axis=-1)
-    k = w / np.maximum(th, 1e-12)[..., None]
-    Kx = np.zeros(w.shape[:-1] + (3, 3))
-    Kx[..., 0, 1], Kx[..., 0, 2], Kx[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
-    Kx[..., 1, 0], Kx[..., 2, 0], Kx[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
-    s, c = np.sin(th)[..., None, None], np.cos(th)[..., None, None]
-    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
 
 
 def windows(boxes: np.ndarray, margin: float) -> np.ndarray:
@@ -387,7 +378,7 @@ def gauss_newton(T: np.ndarray, Kc: np.ndarray, b: np.ndarray, Xo: np.ndarray, t
         ln = np.linalg.norm(dv, axis=1)
         dv = dv * np.minimum(1.0, lim / np.maximum(ln, 1e-12))[:, None]
         Tn = T.copy()
-        Tn[:, :3, :3] = _rodrigues(dw) @ T[:, :3, :3]
+        Tn[:, :3, :3] = axis_angle_to_matrix(dw) @ T[:, :3, :3]
         Tn[:, :3, 3] = T[:, :3, 3] + dv
         res_n, X_n, D_n = _residuals(Tn, Kc, b, Xo, target, nrm)
         new = cost(res_n)

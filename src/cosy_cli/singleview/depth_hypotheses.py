@@ -43,6 +43,8 @@ import weakref
 
 import numpy as np
 
+from ..geometry.rotations import rotation_about_axis
+
 ANGLE_STEP_DEG = 30.0   # candidate near-symmetry rotations: multiples of this about each axis
 NEAR_FRAC = 0.03        # kept when the TRIM_QUANTILE surface distance after the motion < this x diameter
 TRIM_QUANTILE = 0.8
@@ -60,14 +62,6 @@ PICK = "visible"        # estimate: pick by visible_depth_score ("fit": the ICP 
 SAMPLES = 1500          # surface samples used by the score (of the ICP module's 3000, a uniform subset)
 
 _NEAR: dict[int, tuple[weakref.ref, np.ndarray]] = {}
-
-
-def _rot(axis: np.ndarray, ang: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotations by angles ang (n,) radians about the unit axis (3,)."""
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    s, c = np.sin(ang)[:, None, None], np.cos(ang)[:, None, None]
-    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
 
 
 def near_symmetries(model) -> np.ndarray:
@@ -92,7 +86,7 @@ def near_symmetries(model) -> np.ndarray:
     _, evecs = np.linalg.eigh(np.cov((P - c0).T))
     axes = np.concatenate([np.eye(3), evecs.T])
     angles = np.radians(np.arange(ANGLE_STEP_DEG, 360.0 - 1e-6, ANGLE_STEP_DEG))
-    R = np.concatenate([_rot(a, angles) for a in axes])  # (6 * n, 3, 3)
+    R = np.concatenate([rotation_about_axis(a, angles) for a in axes])  # (6 * n, 3, 3)
     sub = P[:: max(1, len(P) // 400)]  # (n, 3)
     C, n = len(R), len(sub)
     t = c0[None] - R @ c0  # (C, 3): about the samples' centroid first

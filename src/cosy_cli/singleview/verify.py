@@ -71,6 +71,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.camera import crop_affine, crop_intrinsics
+from ..geometry.rotations import axis_angle_to_matrix
 
 
 @dataclass
@@ -147,17 +148,6 @@ def _orientation_bins_of(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     for t in _TAN_BIN_EDGES[1:]:
         k += b > t * a
     return np.where((gx < 0) != (gy < 0), (8 - k) & 7, k)  # opposite signs: 180 deg - the folded angle
-
-
-def _rodrigues_batch(w: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotations of rotation vectors (n, 3) (radians)."""
-    th = np.linalg.norm(w, axis=1)
-    k = w / np.maximum(th, 1e-12)[:, None]
-    Kx = np.zeros((len(w), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
-    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
 
 
 @dataclass
@@ -479,7 +469,7 @@ class Verifier:
         ns = c.samples
         for _ in range(c.rounds):
             w = rng.normal(size=(m * ns, 3)) * s_rot
-            dR = _rodrigues_batch(w).reshape(m, ns, 3, 3)
+            dR = axis_angle_to_matrix(w).reshape(m, ns, 3, 3)
             dz = np.exp(rng.normal(size=(m, ns)) * s_z)
             dpx = rng.normal(size=(m, ns, 2)) * s_px
             Tn = np.repeat(T[:, None], ns, 1)
