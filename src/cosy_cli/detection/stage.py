@@ -257,9 +257,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         if detector is None:
             from .network import OnnxDetector  # lazy: onnxruntime is only needed here
 
-            providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" \
-                else ["CPUExecutionProvider"]
-            detector = OnnxDetector(model, providers)
+            detector = OnnxDetector(model, conf["providers"])  # the CPU is always the fallback
         if classifier is not None:  # an object (tests, benchmarks)
             clf = classifier
             conf["classifier"] = "object"
@@ -268,7 +266,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             clf = None  # auto: the shipped classifier goes with the shipped detector (its rule was chosen for it)
         else:
             clf = load_classifier(conf["classifier"], ds.models_info(), getattr(detector, "obj_ids", None),
-                                  ["cuda", "cpu"] if conf["providers"] == "cuda" else ["cpu"], log=log)
+                                  conf["providers"], log=log)
         inputs["classifier"] = None if clf is None else (
             {"path": str(Path(clf.path).resolve()), "sha1": file_sha1(clf.path)} if hasattr(clf, "path")
             else {"object": f"{type(clf).__module__}.{type(clf).__qualname__}"})

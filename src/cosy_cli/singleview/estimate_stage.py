@@ -52,6 +52,7 @@ from ..io.atomic import atomic_path, write_json, write_text
 from ..io.cache import file_sha1
 from ..io.cache import reuse_existing_file
 from ..io.dataset import BopDataset
+from ..onnxrt import provider_names
 from ..shipped import ASSETS, shipped  # noqa: F401 (ASSETS: re-exported)
 from ..shipped import model_path as _model_path
 
@@ -191,7 +192,7 @@ class Estimator:
         self._verifier = None
         self._contour = None
         self.coarse_net = self.refiner_net = None
-        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if conf["providers"] == "cuda" else None
+        providers = provider_names(conf["providers"])  # onnxruntime names; the CPU is always the fallback
         if conf["coarse"] == "network":
             self.coarse_net = self._runner(coarse_model, "coarse", providers)
         if conf["refiner"] == "network":
