@@ -184,16 +184,21 @@ def main(argv=None) -> None:
             a = np.array(res[s])
             rows.append(("lmo_dev", KIND_NAMES[kind], s, a[:, 0].mean(), a[:, 1].mean()))
     own_h = [int(h) for h in args.own_hypotheses.split(",") if h]
-    if args.own_lmo is not None:
+
+    def own_rows(data: str, root: Path, split: str, cands: Path, subs: dict, tag: str) -> None:
+        """cosy's own candidates, once per number of hypotheses in --own-hypotheses."""
         for h in own_h:
-            w = work / f"lmo_own_h{h}"
+            w = work / f"{tag}_own_h{h}"
             w.mkdir(parents=True, exist_ok=True)
-            r = case(lmo, "test", args.own_lmo, w, subsets, {**mc, "hypotheses": h} if h > 1 else mc, rc)
+            r = case(root, split, cands, w, subs, {**mc, "hypotheses": h} if h > 1 else mc, rc)
             name = KIND_NAMES["own"] + (f", {h} hypotheses" if len(own_h) > 1 or h > 1 else "")
-            for s in subsets:
-                rows.append(("lmo_dev", name, s, *r[s]))
-            print(f"  lmo own, {h} hypotheses: match {r['match']['time_per_group_ms']:.2f} ms per group; "
-                  + ", ".join(f"{s} {r[s][0]:.3f} -> {r[s][1]:.3f}" for s in subsets), flush=True)
+            for s in subs:
+                rows.append((data, name, s, *r[s]))
+            print(f"  {tag} own, {h} hypotheses: match {r['match']['time_per_group_ms']:.2f} ms per group; "
+                  + ", ".join(f"{s} {r[s][0]:.3f} -> {r[s][1]:.3f}" for s in subs), flush=True)
+
+    if args.own_lmo is not None:
+        own_rows("lmo_dev", lmo, "test", args.own_lmo, subsets, "lmo")
     ycbv = args.ycbv or REALDATA / "ycbv_0000"
     if not args.no_ycbv and ycbv.is_dir():
         if not any(ycbv.glob("train_real/*/scene_gt_info.json")):  # the shared copy has none: make it
@@ -201,12 +206,7 @@ def main(argv=None) -> None:
         yds = BopDataset(ycbv, "train_real")
         ysub = {"all": list(yds.scene_ids)}
         if args.own_ycbv is not None:
-            for h in own_h:
-                w = work / f"ycbv_own_h{h}"
-                w.mkdir(parents=True, exist_ok=True)
-                r = case(ycbv, "train_real", args.own_ycbv, w, ysub, {**mc, "hypotheses": h} if h > 1 else mc, rc)
-                name = KIND_NAMES["own"] + (f", {h} hypotheses" if len(own_h) > 1 or h > 1 else "")
-                rows.append(("ycbv_0000 (10 frames)", name, "all", *r["all"]))
+            own_rows("ycbv_0000 (10 frames)", ycbv, "train_real", args.own_ycbv, ysub, "ycbv")
         res = []
         for seed in seeds:
             w = work / f"ycbv_1_2_{seed}"
