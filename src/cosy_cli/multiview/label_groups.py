@@ -143,11 +143,6 @@ class PairFit:
         return rec
 
 
-def _chamfer(P: np.ndarray, treeQ, Q: np.ndarray, treeP) -> float:
-    """Mean two-way nearest-neighbour distance between point sets (mm)."""
-    return 0.5 * (float(treeQ.query(P)[0].mean()) + float(treeP.query(Q)[0].mean()))
-
-
 def _kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """T (4, 4) minimising sum ||T P - Q||^2."""
     pc, qc = P.mean(0), Q.mean(0)
