@@ -290,10 +290,13 @@ def write_plot(out: str | Path, curves: list[tuple[str, str]], ylabel: str, titl
 
 
 # ---------------------------------------------------------------------------------- the loop
-def stop_on_sigterm() -> Callable[[], None]:
-    """Make SIGTERM raise KeyboardInterrupt (so ``kill PID`` of a background run saves a
-    checkpoint like Ctrl-C: shells start background jobs with SIGINT ignored). Returns the
-    function that restores the previous handler. No-op outside the main thread."""
+def stop_on_sigterm(requested: dict | None = None) -> Callable[[], None]:
+    """Make SIGTERM stop a run like Ctrl-C (so ``kill PID`` of a background run saves a
+    checkpoint: shells start background jobs with SIGINT ignored). With ``requested`` (a dict) the
+    signal only sets ``requested["stop"]`` and the loop stops at the end of the current step: an
+    exception raised asynchronously inside a C call (an OpenGL render) can surface as another
+    error type and skip the checkpoint. Without it, SIGTERM raises KeyboardInterrupt at once.
+    Returns the function that restores the previous handler. No-op outside the main thread."""
     import signal
     import threading
 
@@ -301,7 +304,9 @@ def stop_on_sigterm() -> Callable[[], None]:
         return lambda: None
 
     def handler(signum, frame):
-        raise KeyboardInterrupt
+        if requested is None:
+            raise KeyboardInterrupt
+        requested["stop"] = True
 
     old = signal.signal(signal.SIGTERM, handler)
     return lambda: signal.signal(signal.SIGTERM, old)
@@ -349,7 +354,8 @@ def run_loop(out: str | Path, conf: dict, record: dict, *, step: int, samples: i
         plot(out)
 
     lr = learning_rate(conf, step)
-    restore_term = stop_on_sigterm() if sigterm else (lambda: None)
+    term = {"stop": False}  # set by SIGTERM: stop after the current step
+    restore_term = stop_on_sigterm(term) if sigterm else (lambda: None)
     bar = tqdm(total=iterations, initial=min(step, iterations), desc=f"train {conf['kind']}", unit="step",
                disable=not progress, dynamic_ncols=True)
     try:
@@ -365,6 +371,8 @@ def run_loop(out: str | Path, conf: dict, record: dict, *, step: int, samples: i
                 flush_log(lr)
             if step % conf["checkpoint_every"] == 0 and step < iterations:
                 save()
+            if term["stop"]:
+                raise KeyboardInterrupt
     except KeyboardInterrupt:
         flush_log(lr)
         csv_log.close()
