@@ -47,10 +47,15 @@ from .common import dataset_options, user_errors
                    "clearly disagrees (> 0.1 x diameter) and scores 0.02 higher replaces the refined pose "
                    "(scene.json records which per view; in `cosy run`, --set refine.image_check_align=true adds a contour "
                    "alignment of the refined pose). auto: when the images exist; on: required [auto].")
+@click.option("--leftover-check/--no-leftover-check", "leftover_check", default=None,
+              help="With the image check, on RGB views without depth: candidates that no refined object explains "
+                   "and that may be one object across views (same label, centres agreeing through the cameras) "
+                   "are scored in all those views; each takes the one of their poses that explains the views best "
+                   "when it scores 0.02 higher than its own (scene.json: leftovers) [on].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, output, explained_frac,
-           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, overwrite: bool) -> None:
+           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, leftover_check, overwrite: bool) -> None:
     """Refine cameras and objects jointly per group (CosyPose stage 3): every object in every placed view.
 
     Writes OUT atomically; skips when OUT is complete and up to date (unless --overwrite).
@@ -63,7 +68,8 @@ def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss
     c = refine_stage.resolve_conf(None, iterations=iterations, loss_threshold_px=loss_threshold_px,
                                   output=output or ("scene+candidates" if keep_unmatched else None),
                                   explained_frac=explained_frac, min_agreeing=min_agreeing, nms_mm=nms_mm,
-                                  exclusion_frac=exclusion_frac, image_check=image_check)
+                                  exclusion_frac=exclusion_frac, image_check=image_check,
+                                  image_check_leftovers=leftover_check)
     refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=click.echo)
 
 
