@@ -69,7 +69,11 @@ def _pairs(ctx, param, value):
               help="Detector input size WIDTHxHEIGHT px, multiples of 16 [320x240] (detector only).")
 @click.option("--init", "init", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Detector / classifier: warm start from an exported detector ONNX of the same architecture "
-                   "(any input size; the classifier takes its backbone), e.g. the shipped one.")
+                   "(any input size; the classifier takes its backbone), e.g. the shipped one. Classifier: or a "
+                   "classifier run's checkpoint.pt (fine-tuning: its EMA weights, a fresh schedule from step 0).")
+@click.option("--soft-targets", type=click.Choice(["lookalike", "none"]), default=None,
+              help="Classifier only: targets split between look-alike models when the details that tell them "
+                   "apart are hidden in the rendered image [lookalike].")
 @click.option("--class-weights", callback=_class_weights, default=None,
               help="Detector only: sampling weights of the objects, OBJ=WEIGHT,... (others 1) [uniform].")
 @click.option("--confusable", callback=_pairs, default=None,
@@ -93,8 +97,9 @@ def _pairs(ctx, param, value):
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
-def train(kind, dataset, split, out, backbone, crop, input_size, init, class_weights, confusable, p_pair, iterations,
-          batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite, quiet) -> None:
+def train(kind, dataset, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
+          iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite,
+          quiet) -> None:
     """Train the KIND (coarse or refiner PoseNet, or the 2D detector) on domain-randomised renders
     of the dataset's objects.
 
@@ -115,10 +120,12 @@ def train(kind, dataset, split, out, backbone, crop, input_size, init, class_wei
         conf = classifier_train.resolve_conf(
             None, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
             device=device, workers=workers, seed=seed, checkpoint_every=checkpoint_every, class_weights=class_weights,
-            confusable=confusable, p_pair=p_pair, init=init)
+            confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets)
         classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo,
                               progress=not quiet)
         return
+    if soft_targets is not None:
+        raise click.UsageError("--soft-targets is for the box classifier")
     if kind == "detector":
         if backbone is not None or crop is not None:
             raise click.UsageError("--backbone and --crop are for the pose networks; the detector takes --input")

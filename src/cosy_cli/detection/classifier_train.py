@@ -10,8 +10,23 @@ edge moved by N(0, ``jitter`` x box size), what a detector's box error looks lik
 "background"). Loss: cross-entropy with label smoothing 0.05, class-balanced by the sampling
 weights. Adam, warm-up + cosine, EMA of the weights (exported).
 
+Soft targets of look-alikes (``soft_targets: lookalike``, the default of new runs): for every
+pair of the dataset's models that look alike (:func:`lookalike_fits`: the chamfer fit of
+:mod:`cosy_cli.multiview.label_groups`, at most 2 % of the diameter, with its alignment
+``T_a_b``), the *distinguishing points* (:func:`distinguishing_points`): surface samples of a
+farther than ``soft_tol_mm`` (or 1.5 % of the larger diameter, whichever is larger) from b's
+surface after the alignment, and b's such samples mapped into a's frame (a notch tells the two
+apart whether it is there or not). Each rendered instance of a counts the image pixels where
+those points are seen (:func:`cosy_cli.detection.data.visible_probe_pixels`, against the scene's
+depth). Fewer than ``soft_px[0]`` pixels: the crop cannot tell a from b, its target is 1/2 a, 1/2 b
+(1/(k+1) each with k such partners); from ``soft_px[1]`` pixels on: a alone; linear in between
+(:func:`soft_target_rows`). The loss is the cross-entropy against these targets.
+
 Run folder and resuming: as the detector's (:mod:`cosy_cli.training.loop`): ``checkpoint.pt``
-every ``checkpoint_every`` steps, on Ctrl-C and on SIGTERM; ``--resume``.
+every ``checkpoint_every`` steps, on Ctrl-C and on SIGTERM; ``--resume``. Fine-tuning: ``init``
+may be a classifier checkpoint (``checkpoint.pt`` of a classifier run, or its folder): the new run
+starts from its EMA weights (same architecture) at step 0 with its own schedule and a fresh
+optimizer.
 """
 
 from __future__ import annotations
@@ -36,7 +51,8 @@ DEFAULT_CONF = {
     "arch": "detector",           # plain | detector (the detector's backbone, warm-started from init)
     "widths": [16, 24, 48, 96, 160],
     "depth": [0, 1, 2, 2],
-    "init": None,                 # arch detector: an exported detector ONNX whose backbone starts the run
+    "init": None,                 # an exported detector ONNX whose backbone starts the run (arch detector), or a
+                                  # classifier checkpoint.pt / run folder whose EMA weights start it (fine-tuning)
     "iterations": 4000,
     "batch_size": 64,
     "lr": 2e-3,
@@ -51,6 +67,9 @@ DEFAULT_CONF = {
     "class_weights": {"4": 1.5, "6": 2.5, "7": 2.5},
     "confusable": [[6, 7, 6], [4, 7, 2], [4, 5, 1], [1, 6, 1], [5, 7, 1], [1, 2, 1]],
     "p_pair": 0.6,
+    "soft_targets": "lookalike",  # lookalike | none: see the module docstring
+    "soft_tol_mm": 2.0,           # distinguishing points: farther than max(this, 1.5 % of the diameter) from the other
+    "soft_px": [2, 20],           # visible distinguishing pixels: <= [0] half / half, >= [1] hard, linear between
     "threads": 1,
     "seed": 0,
     "device": "cpu",
@@ -66,8 +85,10 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
         for k in ("crop", "iterations", "batch_size", "warmup", "reuse", "background_per_image", "max_objects",
                   "threads", "seed", "workers", "checkpoint_every", "log_every"):
             c[k] = int(c[k])
-        for k in ("margin", "lr", "ema", "jitter", "min_visib", "p_pair"):
+        for k in ("margin", "lr", "ema", "jitter", "min_visib", "p_pair", "soft_tol_mm"):
             c[k] = float(c[k])
+        c["soft_targets"] = str(c["soft_targets"] or "none").lower()
+        c["soft_px"] = [float(v) for v in c["soft_px"]]
         c["widths"] = [int(w) for w in c["widths"]]
         c["depth"] = [int(d) for d in c["depth"]]
         c["init"] = str(c["init"]) if c["init"] else None
@@ -78,9 +99,12 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
         raise CosyError(f"classifier training settings: {e}") from None
     if (c["crop"] < 16 or c["margin"] < 1 or c["iterations"] < 1 or c["batch_size"] < 2 or c["lr"] <= 0
             or c["reuse"] < 1 or c["threads"] < 1 or not 0 <= c["ema"] < 1 or c["arch"] not in ("plain", "detector")
-            or len(c["widths"]) != (4 if c["arch"] == "plain" else 5)):
+            or len(c["widths"]) != (4 if c["arch"] == "plain" else 5)
+            or c["soft_targets"] not in ("lookalike", "none") or len(c["soft_px"]) != 2
+            or not 0 <= c["soft_px"][0] < c["soft_px"][1] or c["soft_tol_mm"] <= 0):
         raise CosyError("classifier training settings out of range (crop >= 16, margin >= 1, arch plain (4 widths) "
-                        "or detector (5 widths), ...)")
+                        "or detector (5 widths), soft_targets lookalike | none, soft_px [lo, hi] with 0 <= lo < hi, "
+                        "soft_tol_mm > 0, ...)")
     return c
 
 
@@ -112,46 +136,181 @@ def _background_boxes(rng, boxes: np.ndarray, n: int, w: int, h: int) -> np.ndar
     return np.array(out).reshape(-1, 4)
 
 
-class CropSampler:
-    """Batches of (crops (B, S, S, 3) uint8, class indices (B,)) from rendered scenes."""
+# ---------------------------------------------------------------------------------- soft targets
+def lookalike_fits(meshes: dict, rel: float | None = None, n_query: int = 500, n_target: int = 10000) -> list:
+    """[:class:`~cosy_cli.multiview.label_groups.PairFit`] of the pairs of ``meshes`` ({obj_id:
+    trimesh, mm}) that look alike: sorted extents and diameters within 10 %, then the chamfer fit
+    (identity, else ICP from the principal axes) at most ``rel`` (default 2 %) of the larger
+    diameter, as ``cosy match``'s automatic label groups."""
+    from ..multiview import label_groups as lg
+    from ..multiview.match_stage import sample_surface
+    from ..geometry.sampling import farthest_point_subset
 
-    def __init__(self, meshes, K, image_size, conf: dict, obj_ids, seed, step: int = 0):
+    rel = lg.AUTO_REL if rel is None else float(rel)
+    ids = sorted(int(o) for o in meshes)
+    V = {o: np.asarray(meshes[o].vertices, np.float64) for o in ids}
+    F = {o: np.asarray(meshes[o].faces, np.int64) for o in ids}
+    ext = {o: np.sort(np.ptp(V[o], axis=0)) for o in ids}
+    diam = {o: float(np.linalg.norm(ext[o])) for o in ids}  # the box diagonal: a prefilter only
+    samples, out = {}, []
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            if abs(diam[a] - diam[b]) > lg.PREFILTER_REL * max(diam[a], diam[b]) or \
+                    np.any(np.abs(ext[a] - ext[b]) > lg.PREFILTER_REL * np.maximum(ext[a], ext[b])):
+                continue
+            for o in (a, b):
+                if o not in samples:
+                    q = farthest_point_subset(sample_surface(V[o], F[o], 2 * n_query, seed=2), n_query)
+                    samples[o] = (q, sample_surface(V[o], F[o], n_target, seed=1))
+            d = max(_diameter(V[a]), _diameter(V[b]))
+            fit = lg.fit_models(a, b, samples[a], samples[b], d, rel)
+            if fit.rel <= rel:
+                out.append(fit)
+    return out
+
+
+def _diameter(V: np.ndarray) -> float:
+    from ..objects.database import diameter_of
+
+    return diameter_of(V)
+
+
+def distinguishing_points(mesh_a, mesh_b, T_a_b: np.ndarray, tol_mm: float, n: int = 100_000,
+                          seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The surface regions that tell look-alikes a and b apart, in a's frame (mm).
+
+    Returns (pa (k, 3): samples of a's surface farther than ``tol_mm`` from b's surface placed
+    with ``T_a_b`` (maps b's frame into a's), pb (l, 3): samples of b's surface farther than
+    ``tol_mm`` from a's, mapped into a's frame). ``n`` area-uniform samples per surface (the
+    distance to the other surface is the distance to its nearest sample: about half their
+    spacing too large, ~0.3 mm for 100 k samples on a 100 mm object). Identical models: none."""
+    from scipy.spatial import cKDTree
+
+    from ..multiview.match_stage import sample_surface
+
+    T = np.asarray(T_a_b, np.float64)
+    Sa = sample_surface(np.asarray(mesh_a.vertices, np.float64), np.asarray(mesh_a.faces, np.int64), n, seed=seed)
+    Sb = sample_surface(np.asarray(mesh_b.vertices, np.float64), np.asarray(mesh_b.faces, np.int64), n,
+                        seed=seed + 1) @ T[:3, :3].T + T[:3, 3]
+    da = cKDTree(Sb).query(Sa, distance_upper_bound=4 * tol_mm)[0]
+    db = cKDTree(Sa).query(Sb, distance_upper_bound=4 * tol_mm)[0]
+    return Sa[da > tol_mm], Sb[db > tol_mm]
+
+
+def lookalike_probes(meshes: dict, obj_ids, tol_mm: float = 2.0, rel_tol: float = 0.015,
+                     fits: list | None = None, n: int = 100_000) -> tuple[dict, dict]:
+    """({obj_id: [probe points (m, 3) in its frame, one set per look-alike partner]},
+    {obj_id: [partner obj_ids]}) for the look-alike pairs (``fits``, default :func:`lookalike_fits`)
+    among ``obj_ids``; tolerance max(``tol_mm``, ``rel_tol`` x the larger diameter)."""
+    known = set(int(o) for o in obj_ids)
+    fits = lookalike_fits({o: m for o, m in meshes.items() if int(o) in known}) if fits is None else fits
+    probes: dict = {}
+    partners: dict = {}
+    for f in fits:
+        a, b = int(f.a), int(f.b)
+        if a not in known or b not in known:
+            continue
+        diam = max(_diameter(np.asarray(meshes[a].vertices, np.float64)),
+                   _diameter(np.asarray(meshes[b].vertices, np.float64)))
+        tol = max(float(tol_mm), rel_tol * diam)
+        pa, pb = distinguishing_points(meshes[a], meshes[b], f.T_a_b, tol, n=n)
+        if len(pa) + len(pb) == 0:
+            continue  # identical models: nothing tells them apart, nothing to soften by
+        P_a = np.concatenate([pa, pb])                   # in a's frame
+        Ti = np.linalg.inv(np.asarray(f.T_a_b, np.float64))
+        P_b = P_a @ Ti[:3, :3].T + Ti[:3, 3]             # the same points in b's frame
+        probes.setdefault(a, []).append(P_a)
+        partners.setdefault(a, []).append(b)
+        probes.setdefault(b, []).append(P_b)
+        partners.setdefault(b, []).append(a)
+    return probes, partners
+
+
+def soft_target_rows(labels: np.ndarray, probe_px: np.ndarray | None, partners: dict, obj_ids, n_classes: int,
+                     px_range=(2.0, 20.0)) -> np.ndarray:
+    """(n, n_classes) float32 target distributions of crops of class indices ``labels`` (n,).
+
+    ``probe_px`` (n, P): visible distinguishing pixels of each crop's instance per partner set
+    (-1: none), ``partners`` {obj_id: [partner obj_ids]} in the order of those sets. Per partner p
+    the weight u_p = 1 - clip((px - lo) / (hi - lo), 0, 1) (1: hidden, 0: seen); the target gives
+    1 to the true class and u_p to each partner, normalised (one hidden partner: 1/2, 1/2)."""
+    labels = np.asarray(labels, np.int64)
+    t = np.zeros((len(labels), n_classes), np.float32)
+    t[np.arange(len(labels)), labels] = 1.0
+    if probe_px is None or not partners or not len(labels):
+        return t
+    lo, hi = float(px_range[0]), float(px_range[1])
+    col = {int(o): k for k, o in enumerate(obj_ids)}
+    for i, c in enumerate(labels):
+        if c >= len(obj_ids):
+            continue
+        for k, p in enumerate(partners.get(int(obj_ids[c]), [])):
+            px = probe_px[i, k] if k < probe_px.shape[1] else -1
+            if px < 0 or p not in col:
+                continue
+            t[i, col[p]] += 1.0 - float(np.clip((px - lo) / (hi - lo), 0.0, 1.0))
+    return t / t.sum(1, keepdims=True)
+
+
+class CropSampler:
+    """Batches of (crops (B, S, S, 3) uint8, class indices (B,)) from rendered scenes; with
+    :meth:`batch_targets` also the target distributions (soft for hidden look-alike details)."""
+
+    def __init__(self, meshes, K, image_size, conf: dict, obj_ids, seed, step: int = 0, probes=None):
         from .data import DetectionSampleGenerator
 
         self.conf = conf
         self.size = (int(image_size[0]), int(image_size[1]))
         self.obj_ids = list(obj_ids)
+        if probes is None and conf.get("soft_targets", "none") == "lookalike":
+            probes = lookalike_probes(meshes, obj_ids, conf.get("soft_tol_mm", 2.0))
+        self.probes, self.partners = probes if probes else ({}, {})
         self.gen = DetectionSampleGenerator(
             meshes, K, image_size, input_size=self.size, seed=seed, obj_ids=obj_ids, max_objects=conf["max_objects"],
             min_visib=conf["min_visib"],
             class_weights={int(k): v for k, v in (conf["class_weights"] or {}).items()} or None,
-            confusable=conf["confusable"], p_pair=conf["p_pair"])
+            confusable=conf["confusable"], p_pair=conf["p_pair"], probe_points=self.probes or None)
         self.rng = np.random.default_rng([int(conf["seed"]), 99, int(step)])  # box jitter, background boxes
         self.pool_x: list = []
         self.pool_y: list = []
+        self.pool_t: list = []
+        self.soft_crops = 0  # crops whose target is not one-hot (for the log)
 
     def _fill(self) -> None:
         c = self.conf
         b = self.gen.batch(4)
         C = len(self.obj_ids)
-        for img, boxes, labels in zip(b["images"], b["boxes"], b["labels"]):
+        probe_px = b.get("probe_px", [None] * len(b["images"]))
+        for img, boxes, labels, ppx in zip(b["images"], b["boxes"], b["labels"], probe_px):
+            targets = soft_target_rows(labels, ppx, self.partners, self.obj_ids, C + 1,
+                                       c.get("soft_px", (2.0, 20.0)))
             for _ in range(c["reuse"]):
                 if len(boxes):
                     self.pool_x.append(crop_boxes(img, _jitter(boxes, self.rng, c["jitter"]), c["crop"], c["margin"]))
                     self.pool_y.append(labels)
+                    self.pool_t.append(targets)
             bg = _background_boxes(self.rng, boxes, c["background_per_image"], *self.size)
             if len(bg):
                 self.pool_x.append(crop_boxes(img, bg, c["crop"], c["margin"]))
                 self.pool_y.append(np.full(len(bg), C, np.int64))
+                t = np.zeros((len(bg), C + 1), np.float32)
+                t[:, C] = 1.0
+                self.pool_t.append(t)
 
-    def batch(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+    def batch_targets(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(crops (n, S, S, 3) uint8, class indices (n,), targets (n, C + 1) float32)."""
         while sum(len(y) for y in self.pool_y) < n:
             self._fill()
-        x, y = np.concatenate(self.pool_x), np.concatenate(self.pool_y)
+        x, y, t = np.concatenate(self.pool_x), np.concatenate(self.pool_y), np.concatenate(self.pool_t)
         perm = self.rng.permutation(len(y))
         take, rest = perm[:n], perm[n:]
-        self.pool_x, self.pool_y = [x[rest]], [y[rest]]
-        return x[take], y[take]
+        self.pool_x, self.pool_y, self.pool_t = [x[rest]], [y[rest]], [t[rest]]
+        self.soft_crops += int((t[take].max(1) < 1.0).sum())
+        return x[take], y[take], t[take]
+
+    def batch(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        x, y, _ = self.batch_targets(n)
+        return x, y
 
     def close(self) -> None:
         self.gen.close()
@@ -177,12 +336,37 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     conf = resolve_conf(conf)
     out = Path(out)
     loop.check_run_folder(out, resume, overwrite)
+    if resume:  # runs recorded before the soft targets existed continue as they were trained
+        try:
+            import json
+
+            old = json.loads((out / loop.CONFIG).read_text())
+        except (OSError, ValueError):
+            old = None
+        if isinstance(old, dict):
+            for k in ("soft_targets", "soft_tol_mm", "soft_px"):
+                if k not in old:
+                    conf.pop(k, None)
+            if "soft_targets" not in old:
+                conf["_legacy_hard"] = True
     meshes, K, image_size = load_dataset_objects(dataset)
     obj_ids = sorted(meshes)
+    legacy = conf.pop("_legacy_hard", False)
     record = dict(conf, dataset=str(Path(dataset).resolve()), split=split, obj_ids=obj_ids,
                   camera_K=np.asarray(K).tolist(), image_size=list(image_size))
-    if conf["init"] and not resume and not Path(conf["init"]).is_file():
-        raise CosyError("warm-start detector (init) not found", path=conf["init"])
+    if legacy:
+        conf.update(soft_targets="none", soft_tol_mm=2.0, soft_px=[2.0, 20.0])
+    init_ckpt = None
+    if conf["init"] and not resume:
+        ip = Path(conf["init"])
+        if ip.is_dir():
+            ip = ip / loop.CHECKPOINT
+        if not ip.is_file():
+            raise CosyError("warm start (init: a detector ONNX or a classifier checkpoint) not found", path=conf["init"])
+        if ip.suffix != ".onnx":
+            init_ckpt = loop.load_checkpoint(ip, "classifier checkpoint (init)")
+            if not isinstance(init_ckpt, dict) or "ema" not in init_ckpt or "state_dict" not in init_ckpt["ema"]:
+                raise CosyError("init: not a classifier checkpoint (no EMA weights)", path=ip)
     ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite,
                           resumable=loop.RESUMABLE_CHANGES | {"threads", "init"})
     device = loop.select_device(conf, log)
@@ -192,7 +376,19 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     model = build_network(cfg)
     sampler = CropSampler(meshes, K, image_size, conf, obj_ids, np.random.SeedSequence([conf["seed"], step_of(ckpt)]),
                           step_of(ckpt))
-    if ckpt is None and conf["init"]:
+    if sampler.partners:
+        log("train classifier: soft targets for hidden look-alike details: "
+            + ", ".join(f"{a}: {len(p)} distinguishing points" for a, p in
+                        ((a, np.concatenate(ps)) for a, ps in sorted(sampler.probes.items()))))
+    if ckpt is None and init_ckpt is not None:
+        from .classifier import ClassifierConfig as _CC
+
+        if _CC.from_dict(init_ckpt["ema"]["config"]).to_dict() != cfg.to_dict():
+            raise CosyError("init: the classifier checkpoint's network differs from this run's (classes, crop, "
+                            "architecture)", path=conf["init"])
+        model.load_state_dict(init_ckpt["ema"]["state_dict"])
+        log(f"train classifier: fine-tuning from the EMA weights of {conf['init']} (step {init_ckpt.get('step')})")
+    elif ckpt is None and conf["init"]:
         if conf["arch"] != "detector":
             raise CosyError("init (a detector's backbone) needs arch detector")
         from .classifier import init_from_detector
@@ -218,14 +414,15 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     ema_params, model_params = list(ema.parameters()), list(model.parameters())
 
     def train_step(step: int):
-        x, y = sampler.batch(conf["batch_size"])
+        x, y, t = sampler.batch_targets(conf["batch_size"])
         xt = torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2))).to(device).float().div_(255.0)
         yt = torch.from_numpy(y).to(device)
+        tt = torch.from_numpy(t).to(device)
         lr = loop.learning_rate(conf, step)
         for g in opt.param_groups:
             g["lr"] = lr
         logits = model(xt)
-        loss = F.cross_entropy(logits, yt, label_smoothing=0.05)
+        loss = F.cross_entropy(logits, tt, label_smoothing=0.05)  # one-hot rows: the hard-label loss
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -283,4 +480,5 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     ], ck, accuracy, log)
 
 
-__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "load_run", "export", "CropSampler"]
+__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "load_run", "export", "CropSampler", "lookalike_fits",
+           "distinguishing_points", "lookalike_probes", "soft_target_rows"]

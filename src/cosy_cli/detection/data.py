@@ -32,6 +32,13 @@ Boxes are [x1, y1, x2, y2] in continuous coordinates of the input image whose pi
 covers [u, u + 1) x [v, v + 1): the box of a mask with columns x_min..x_max is x1 = x_min,
 x2 = x_max + 1.
 
+Probe points (optional, ``probe_points``: {obj_id: [(n_k, 3) points in the object's frame, mm],
+e.g. the regions that tell a look-alike pair apart}): each kept instance of such an object also gets
+the number of image pixels where its probe points, placed with the instance's pose, are seen
+(:func:`visible_probe_pixels`: inside the image and not behind the rendered depth by more than a
+tolerance), one count per probe set, in ``batch()["probe_px"]``. Without probe points the images
+and the random stream are those of before.
+
 Deterministic under ``seed``. The OpenGL renderer is created on first use: build generators
 inside worker processes (:class:`DetectionStream` does).
 """
@@ -112,7 +119,7 @@ class DetectionSampleGenerator(RendererOwner):
     def __init__(self, meshes: dict, K: np.ndarray, image_size, input_size=(320, 240), seed=0, *,
                  obj_ids=None, max_objects: int = 10, p_table: float = 0.75, min_visib: float = 0.1,
                  min_pixels: int = 12, light_groups: int = 4, smooth: bool = True, class_weights=None,
-                 confusable=None, p_pair: float = 0.0):
+                 confusable=None, p_pair: float = 0.0, probe_points=None):
         self.meshes = {int(k): v for k, v in meshes.items()}
         self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
         self.K = np.asarray(K, dtype=np.float64)
@@ -131,6 +138,8 @@ class DetectionSampleGenerator(RendererOwner):
         self.p_pair = float(p_pair) if len(self.pairs) else 0.0
         self.rest = {int(o): _RestPoses(self.meshes[int(o)]) for o in self.obj_ids}
         self.radius = {int(o): float(np.linalg.norm(self.rest[int(o)].hull, axis=1).max()) for o in self.obj_ids}
+        self.probe_points = {int(o): [np.asarray(p, np.float64).reshape(-1, 3) for p in sets]
+                             for o, sets in (probe_points or {}).items()}
         self._renderer = None
 
     # ------------------------------------------------------------------ renderer
@@ -270,8 +279,18 @@ class DetectionSampleGenerator(RendererOwner):
             colors[is_table] = hsv_to_rgb(rng.uniform(0, 1, k), rng.uniform(0, 0.6, k), rng.uniform(0.1, 0.95, k))
 
         r = self.renderer
-        rgb, inst = render_in_light_groups(r, rng, Ks, ids, T, tiles, (w, h), colors, self.light_groups,
-                                           intensity=(0.35, 0.95), ambient=(0.1, 0.5))
+        probes = bool(self.probe_points)
+        rendered = render_in_light_groups(r, rng, Ks, ids, T, tiles, (w, h), colors, self.light_groups,
+                                          intensity=(0.35, 0.95), ambient=(0.1, 0.5), with_depth=probes)
+        rgb, inst = rendered[:2]
+        n_sets = max((len(v) for v in self.probe_points.values()), default=0)
+        probe_px = np.full((n, n_sets), -1, np.int64)
+        if probes:
+            for o, sets in self.probe_points.items():
+                sel = np.flatnonzero(ids == o)
+                for k, pts in enumerate(sets):
+                    if len(sel) and len(pts):
+                        probe_px[sel, k] = visible_probe_pixels(Ks[tiles[sel]], T[sel], pts, rendered[2][tiles[sel]])
 
         # silhouettes of the objects alone, at half resolution (visible fraction only)
         objs = np.flatnonzero(~is_table)
@@ -282,11 +301,13 @@ class DetectionSampleGenerator(RendererOwner):
         full_px[objs] = sil.reshape(len(objs), -1).sum(1) * (w * h) / (hw * hh)
 
         out = {"boxes": [], "labels": [], "ignore_boxes": [], "ignore_labels": [], "visib_fract": []}
+        if probes:
+            out["probe_px"] = []
         class_of = {int(o): k for k, o in enumerate(self.obj_ids)}
         for b in range(B):
             i0, i1 = np.searchsorted(tiles, [b, b + 1])
             members = [i for i in range(i0, i1) if not is_table[i]]
-            boxes, labels, ign, ign_l, vis = [], [], [], [], []
+            boxes, labels, ign, ign_l, vis, kept = [], [], [], [], [], []
             if members:
                 m = inst[b][None] == np.array(members)[:, None, None]  # (k, h, w)
                 px = m.sum((1, 2))
@@ -304,11 +325,14 @@ class DetectionSampleGenerator(RendererOwner):
                         boxes.append(box)
                         labels.append(class_of[int(ids[i])])
                         vis.append(vf)
+                        kept.append(i)
             out["boxes"].append(np.array(boxes, np.float64).reshape(-1, 4))
             out["labels"].append(np.array(labels, np.int64))
             out["ignore_boxes"].append(np.array(ign, np.float64).reshape(-1, 4))
             out["ignore_labels"].append(np.array(ign_l, np.int64))
             out["visib_fract"].append(np.array(vis))
+            if probes:
+                out["probe_px"].append(probe_px[np.array(kept, np.int64)].reshape(len(kept), n_sets))
         out["images"] = self._compose(rgb, inst >= 0)
         return out
 
@@ -366,6 +390,39 @@ class DetectionSampleGenerator(RendererOwner):
                 img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, 1.0)))
             out[b] = np.clip(img + 0.5, 0, 255).astype(np.uint8)
         return out
+
+
+def visible_probe_pixels(Ks: np.ndarray, T_cam_obj: np.ndarray, points: np.ndarray, depth: np.ndarray,
+                         tol_mm: float = 2.0, tol_px: float = 2.0) -> np.ndarray:
+    """Per instance, the number of distinct pixels showing one of ``points`` (M, 3) mm (object frame).
+
+    Ks (n, 3, 3) and depth (n, h, w) (camera z mm of the visible surface, 0 = nothing drawn) of
+    each instance's image, T_cam_obj (n, 4, 4). A point counts where it projects inside the image
+    (nearest pixel centre, pixel centres at integers), in front of the camera, and no surface of
+    the rendered depth is nearer than the point by more than ``tol_mm`` + ``tol_px`` pixel
+    footprints (z / f): not hidden by the object itself nor by others. Where nothing is drawn
+    the point counts (e.g. a missing part seen against the background). Returns (n,) int64."""
+    Ks = np.asarray(Ks, np.float64)
+    T = np.asarray(T_cam_obj, np.float64)
+    n, h, w = depth.shape
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    if n == 0 or len(P) == 0:
+        return np.zeros(n, np.int64)
+    X = np.einsum("nij,mj->nmi", T[:, :3, :3], P) + T[:, None, :3, 3]  # (n, M, 3) camera frame
+    z = X[..., 2]
+    uvw = np.einsum("nij,nmj->nmi", Ks, X)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint(uvw[..., 0] / uvw[..., 2])
+        v = np.rint(uvw[..., 1] / uvw[..., 2])
+    ok = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    ui, vi = np.where(ok, u, 0).astype(np.int64), np.where(ok, v, 0).astype(np.int64)
+    inst = np.broadcast_to(np.arange(n)[:, None], z.shape)
+    d = depth[inst, vi, ui].astype(np.float64)
+    tol = tol_mm + tol_px * z / Ks[:, None, 0, 0]
+    ok &= (d <= 0) | (z <= d + tol)
+    key = (inst[ok] * h + vi[ok]) * w + ui[ok]
+    key = np.unique(key)
+    return np.bincount(key // (h * w), minlength=n).astype(np.int64)
 
 
 def normalised_weights(weights, obj_ids) -> np.ndarray | None:
@@ -448,4 +505,4 @@ class DetectionStream(_iterable_base()):
 
 
 __all__ = ["DetectionSampleGenerator", "DetectionStream", "batch_targets", "scaled_intrinsics", "normalised_weights",
-           "pair_table"]
+           "pair_table", "visible_probe_pixels"]

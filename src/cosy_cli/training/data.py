@@ -179,17 +179,19 @@ def random_light_dirs(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def render_in_light_groups(renderer, rng: np.random.Generator, Ks: np.ndarray, ids: np.ndarray, T: np.ndarray,
                            tiles: np.ndarray, size, colors: np.ndarray, light_groups: int,
-                           intensity=(0.35, 1.0), ambient=(0.05, 0.5)) -> tuple[np.ndarray, np.ndarray]:
+                           intensity=(0.35, 1.0), ambient=(0.05, 0.5), with_depth: bool = False) -> tuple:
     """Render B = len(Ks) images (size (w, h), intrinsics Ks (B, 3, 3)) of the instances ``ids``
     at poses ``T`` (n, 4, 4) mm, in image order ``tiles`` (n,), with flat ``colors`` (n, 3) (NaN:
     the mesh's own), in ``min(light_groups, B)`` groups of consecutive images that share a random
     light (:func:`random_light_dirs`, intensity and ambient uniform in the given ranges), one
     render call each. Returns (rgb (B, h, w, 3) uint8, instance (B, h, w) int32: index into
-    ``ids`` of the visible instance, -1 where nothing is drawn)."""
+    ``ids`` of the visible instance, -1 where nothing is drawn). ``with_depth``: also depth (B, h, w)
+    float32, camera z in mm of the visible surface, 0 where nothing is drawn (a third element)."""
     w, h = size
     B = len(Ks)
     rgb = np.empty((B, h, w, 3), np.uint8)
     inst = np.empty((B, h, w), np.int32)
+    depth = np.empty((B, h, w), np.float32) if with_depth else None
     G = min(light_groups, B)
     edges = np.linspace(0, B, G + 1).astype(int)
     light_dirs = random_light_dirs(rng, G)
@@ -205,7 +207,9 @@ def render_in_light_groups(renderer, rng: np.random.Generator, Ks: np.ndarray, i
                                     ambient=float(light_ambient[g]), tiles=tiles[i0:i1] - b0)
         rgb[b0:b1] = out.rgb
         inst[b0:b1] = np.where(out.instance >= 0, out.instance + i0, -1)
-    return rgb, inst
+        if with_depth:
+            depth[b0:b1] = out.depth
+    return (rgb, inst, depth) if with_depth else (rgb, inst)
 
 
 @functools.lru_cache(maxsize=4)
