@@ -52,10 +52,15 @@ from .common import dataset_options, user_errors
                    "and that may be one object across views (same label, centres agreeing through the cameras) "
                    "are scored in all those views; each takes the one of their poses that explains the views best "
                    "when it scores 0.02 higher than its own (scene.json: leftovers) [on].")
+@click.option("--feature-cameras", type=click.Choice(["leftovers", "scene", "none"]), default=None,
+              help="Without known cameras: each view's rotation and baseline direction relative to the gauge view "
+                   "from SIFT features (scale from the objects), where the image pair is trusted. leftovers: they "
+                   "carry the leftover check's candidates across views; scene: the objects are also adjusted "
+                   "again with them held; none: the objects alone (the paper) [leftovers].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, output, explained_frac,
-           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, leftover_check, overwrite: bool) -> None:
+           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, leftover_check, feature_cameras, overwrite: bool) -> None:
     """Refine cameras and objects jointly per group (CosyPose stage 3): every object in every placed view.
 
     Writes OUT atomically; skips when OUT is complete and up to date (unless --overwrite).
@@ -69,7 +74,7 @@ def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss
                                   output=output or ("scene+candidates" if keep_unmatched else None),
                                   explained_frac=explained_frac, min_agreeing=min_agreeing, nms_mm=nms_mm,
                                   exclusion_frac=exclusion_frac, image_check=image_check,
-                                  image_check_leftovers=leftover_check)
+                                  image_check_leftovers=leftover_check, feature_cameras=feature_cameras)
     refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=click.echo)
 
 

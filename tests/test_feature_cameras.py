@@ -1,0 +1,145 @@
+"""Cameras from image features (multiview/features.py, refine ``feature_cameras``)."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import json  # noqa: E402
+import warnings  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from realdata import LMO, needs  # noqa: E402
+
+warnings.filterwarnings("ignore", message=".*orthonormal only.*")
+
+
+def _orthonormal(T):
+    T = np.array(T, dtype=np.float64)
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = u @ vt
+    return T
+
+
+def _pose(axis, deg, t):
+    from cosy_cli.geometry.rotations import rotation_about_axis
+
+    T = np.eye(4)
+    T[:3, :3] = rotation_about_axis(np.asarray(axis, float), np.array([np.radians(deg)]))[0]
+    T[:3, 3] = t
+    return T
+
+
+def test_feature_camera_takes_rotation_and_direction_from_the_images_and_scale_from_the_objects():
+    from cosy_cli.multiview import features as ft
+
+    conf = ft.FeatureConf()
+    T_ref_cam = _pose([0, 1, 0], 20.0, [300.0, 20.0, 50.0])  # the true camera of the view, in the reference's
+    d = T_ref_cam[:3, 3] / np.linalg.norm(T_ref_cam[:3, 3])
+    pair_T = T_ref_cam.copy()
+    pair_T[:3, 3] = d  # what the images give: unit translation
+    pair = ft.PairPose(pair_T, n_inliers=200, n_matches=400)
+    # the object-level estimate: 4 deg and 60 mm off
+    T_obj = _pose([1, 0, 0], 4.0, [0, 0, 0]) @ T_ref_cam
+    T_obj[:3, 3] += [40.0, -30.0, 30.0]
+    # three objects' centres seen in both views (reference and view frames), one of them 10 % off in depth
+    X = np.array([[0.0, 0, 900], [150, -50, 1000], [-120, 80, 950]])
+    X_cam = (X - T_ref_cam[:3, 3]) @ T_ref_cam[:3, :3]  # the same points in the view's frame
+    X_cam[2] *= 1.1
+    T = ft.feature_camera(np.eye(4), T_obj, pair, conf, X, X_cam)
+    assert T is not None
+    assert ft.rotation_angle_deg(T[:3, :3], T_ref_cam[:3, :3]) < 1e-6
+    assert np.linalg.norm(T[:3, 3] - T_ref_cam[:3, 3]) < 1.0  # the median ignores the one off in depth
+    # without object centres: the object-level baseline projected on the direction
+    T2 = ft.feature_camera(np.eye(4), T_obj, pair, conf)
+    assert abs(np.linalg.norm(T2[:3, 3]) - T_obj[:3, 3] @ d) < 1e-6
+    # in another world frame (the reference camera not at the origin) the same relative pose
+    W = _pose([0, 0, 1], 30.0, [10.0, 20.0, 30.0])
+    T3 = ft.feature_camera(W, W @ T_obj, pair, conf, X, X_cam)
+    assert np.allclose(T3, W @ T, atol=1e-6)
+    # refused: too few inliers, a rotation far from the objects' one, a direction pointing backwards
+    assert ft.feature_camera(np.eye(4), T_obj, ft.PairPose(pair_T, 10, 400), conf, X, X_cam) is None
+    assert ft.feature_camera(np.eye(4), _pose([0, 1, 0], 60.0, T_obj[:3, 3]), pair, conf, X, X_cam) is None
+    back = pair_T.copy()
+    back[:3, 3] = -d
+    assert ft.feature_camera(np.eye(4), T_obj, ft.PairPose(back, 200, 400), conf, X, X_cam) is None
+    assert ft.feature_camera(np.eye(4), T_obj, None, conf) is None
+
+
+@needs(LMO)
+def test_relative_pose_of_two_real_lmo_views_matches_the_gt_derived_one():
+    """LM-O scene 3, images 266 and 277: rotation and baseline direction from SIFT + essential
+    matrix agree with the cameras implied by the GT object poses (rigid within 10 mm)."""
+    from cosy_cli.geometry.poses import invert
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.multiview import features as ft
+
+    ds = BopDataset(LMO, "test")
+    s, a, b = 3, 266, 277
+    gt = ds.scene_gt(s)
+    ref = {g.obj_id: _orthonormal(g.T_cam_obj) for g in gt[a]}
+    T_gt = _orthonormal(np.mean([ref[g.obj_id] @ invert(_orthonormal(g.T_cam_obj)) for g in gt[b] if g.obj_id in ref], 0))
+    cams = ds.scene_camera(s)
+    cache = ft.FeatureCache()
+    p = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, b, ds.read_rgb(s, b), cams[b].K)
+    assert p is not None and p.n_inliers >= 100
+    assert ft.rotation_angle_deg(p.T_a_b[:3, :3], T_gt[:3, :3]) < 2.0
+    d_gt = T_gt[:3, 3] / np.linalg.norm(T_gt[:3, 3])
+    assert np.degrees(np.arccos(np.clip(p.T_a_b[:3, 3] @ d_gt, -1, 1))) < 5.0
+    assert abs(np.linalg.norm(p.T_a_b[:3, 3]) - 1.0) < 1e-9
+    # the same image twice: no baseline to speak of, but the rotation is the identity
+    q = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, a, ds.read_rgb(s, a), cams[a].K)
+    assert q is None or ft.rotation_angle_deg(q.T_a_b[:3, :3], np.eye(3)) < 1.0
+
+
+@needs(LMO)
+def test_refine_records_the_feature_cameras_and_none_is_the_objects_alone(tmp_path):
+    """cosy refine on synthetic candidates (3 % / 5 deg) of LM-O scenes 1-4: with the default
+    ("leftovers") each group's stats say per view how many inliers its image pair had and whether
+    it was used, and the cameras used carry T_world_cam_features, while the refined scene is the
+    one without feature cameras, bit for bit; "none" records nothing; bad settings are refused."""
+    from cosy_cli.errors import CosyError
+    from cosy_cli.io import bop
+    from cosy_cli.multiview import match_stage, refine_stage
+    from cosy_cli.synth import candidates as synth_candidates
+
+    quiet = lambda *a, **k: None  # noqa: E731
+    synth_candidates.main(LMO, "test", tmp_path / "all.csv", profile="realistic", seed=5, depth_rel=0.03, rot_deg=5.0,
+                          log=quiet)
+    res = bop.read_results(tmp_path / "all.csv", check_rotations=False)
+    keep = res.table["scene_id"].to_numpy() <= 4
+    t = res.table[keep]
+    (tmp_path / "c.csv").write_text(bop.format_results(bop.PoseResults.from_arrays(
+        t["scene_id"], t["im_id"], t["obj_id"], t["score"], res.T_cam_obj[keep], t["time"])))
+    match_stage.main(match_stage.resolve_conf("paper"), LMO, "test", tmp_path / "c.csv", tmp_path / "m", log=quiet,
+                     progress=False)
+    refine_stage.main(None, LMO, "test", tmp_path / "m", tmp_path / "on", log=quiet, progress=False)
+    refine_stage.main(refine_stage.resolve_conf(None, feature_cameras="none"), LMO, "test", tmp_path / "m",
+                      tmp_path / "off", log=quiet, progress=False)
+    on = json.loads((tmp_path / "on" / "scene.json").read_text())
+    off = json.loads((tmp_path / "off" / "scene.json").read_text())
+    multi = [g for g in on["groups"] if not g.get("single_view") and len(g["cameras"]) > 1]
+    assert multi
+    n_used = 0
+    for g in multi:
+        views = g["stats"]["feature_cameras"]["views"]
+        assert set(views) <= set(g["placed_by"])  # im_ids of the group
+        for v, info in views.items():
+            assert info["inliers"] >= 0 and isinstance(info["used"], bool)
+            n_used += info["used"]
+        for c in g["cameras"]:
+            if views.get(str(c["im_id"]), {}).get("used"):
+                T = np.array(c["T_world_cam_features"])
+                assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+    assert n_used > 0
+    assert not any("feature_cameras" in g["stats"] for g in off["groups"])
+    # the refined scene itself is the same (only the leftovers are carried with the feature cameras)
+    for ga, gb in zip(on["groups"], off["groups"]):
+        assert [c["T_world_cam"] for c in ga["cameras"]] == [c["T_world_cam"] for c in gb["cameras"]]
+        assert [o["T_world_obj"] for o in ga["objects"]] == [o["T_world_obj"] for o in gb["objects"]]
+    with pytest.raises(CosyError, match="feature_cameras"):
+        refine_stage.resolve_conf(None, feature_cameras="sometimes")
