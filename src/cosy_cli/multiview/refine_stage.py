@@ -534,7 +534,12 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         unplaced = [v for v in im_ids if v not in placed]
     views = list(placed)
     vidx = {v: k for k, v in enumerate(views)}
-    if not known_cameras and conf["feature_cameras"] != "none" and len(views) > 1:
+    # feature cameras: for the scene ("scene"), or for the leftover check, which runs on RGB views
+    # without depth ("leftovers")
+    wanted = conf["feature_cameras"] == "scene" or (
+        conf["feature_cameras"] == "leftovers" and checker is not None and conf["image_check_leftovers"]
+        and conf["output"] == "scene+candidates" and any(ds.depth_path(s, v) is None for v in views))
+    if not known_cameras and wanted and len(views) > 1:
         from .image_check import images_available
 
         use_features = images_available(ds, s, views)
