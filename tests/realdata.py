@@ -19,3 +19,29 @@ def needs(*folders: Path) -> pytest.MarkDecorator:
     missing = [str(f) for f in folders if not Path(f).is_dir()]
     return pytest.mark.skipif(bool(missing), reason=f"real data not found: {', '.join(missing)} "
                                                     "(see ../shared/realdata/README.md)")
+
+
+def orthonormal(T):
+    """A copy of the 4x4 pose T with its rotation replaced by the nearest rotation (the published
+    LM-O rotations are orthonormal only to about 1e-2)."""
+    import numpy as np
+
+    T = np.array(T, dtype=np.float64)
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = u @ vt
+    return T
+
+
+def gt_cameras(ds, scene_id: int, views) -> dict:
+    """T_world_cam {im_id: (4, 4)} mm of LM-O views from the GT object poses: world = the first
+    view's camera, each view placed by the mean over the objects both views see of
+    T_cam0_obj inv(T_cam_obj) (the arrangement of a scene is rigid within 10 mm)."""
+    import numpy as np
+
+    from cosy_cli.geometry.poses import invert
+
+    gt = ds.scene_gt(scene_id)
+    views = list(views)
+    ref = {g.obj_id: orthonormal(g.T_cam_obj) for g in gt[views[0]]}
+    return {v: orthonormal(np.mean([ref[g.obj_id] @ invert(orthonormal(g.T_cam_obj)) for g in gt[v]
+                                    if g.obj_id in ref], 0)) for v in views}

@@ -13,16 +13,9 @@ import warnings  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from realdata import LMO, needs  # noqa: E402
+from realdata import LMO, gt_cameras, needs  # noqa: E402
 
 warnings.filterwarnings("ignore", message=".*orthonormal only.*")
-
-
-def _orthonormal(T):
-    T = np.array(T, dtype=np.float64)
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = u @ vt
-    return T
 
 
 def _pose(axis, deg, t):
@@ -74,15 +67,12 @@ def test_feature_camera_takes_rotation_and_direction_from_the_images_and_scale_f
 def test_relative_pose_of_two_real_lmo_views_matches_the_gt_derived_one():
     """LM-O scene 3, images 266 and 277: rotation and baseline direction from SIFT + essential
     matrix agree with the cameras implied by the GT object poses (rigid within 10 mm)."""
-    from cosy_cli.geometry.poses import invert
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.multiview import features as ft
 
     ds = BopDataset(LMO, "test")
     s, a, b = 3, 266, 277
-    gt = ds.scene_gt(s)
-    ref = {g.obj_id: _orthonormal(g.T_cam_obj) for g in gt[a]}
-    T_gt = _orthonormal(np.mean([ref[g.obj_id] @ invert(_orthonormal(g.T_cam_obj)) for g in gt[b] if g.obj_id in ref], 0))
+    T_gt = gt_cameras(ds, s, [a, b])[b]
     cams = ds.scene_camera(s)
     cache = ft.FeatureCache()
     p = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, b, ds.read_rgb(s, b), cams[b].K)

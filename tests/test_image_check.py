@@ -14,17 +14,11 @@ import warnings  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from realdata import LMO, needs  # noqa: E402
+from realdata import LMO, gt_cameras, needs  # noqa: E402
+from realdata import orthonormal as _orthonormal  # noqa: E402
 
 pytestmark = needs(LMO)
 warnings.filterwarnings("ignore", message=".*orthonormal only.*")
-
-
-def _orthonormal(T):
-    T = np.array(T, dtype=np.float64)
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = u @ vt
-    return T
 
 
 @pytest.fixture(scope="module")
@@ -220,22 +214,6 @@ def test_bad_image_check_settings_are_refused():
 # leftovers: candidates no refined object explains, checked across the views
 # ---------------------------------------------------------------------------------------------
 
-def _gt_cameras(ds, s, views):
-    """T_world_cam of LM-O views from the GT (world = the first view's camera; each view placed by
-    the mean over the objects both views see of T_cam0_obj inv(T_cam_obj): the arrangement is
-    rigid within 10 mm)."""
-    from cosy_cli.geometry.poses import invert
-
-    gt = ds.scene_gt(s)
-    ref = {g.obj_id: _orthonormal(g.T_cam_obj) for g in gt[views[0]]}
-    out = {}
-    for v in views:
-        Ts = [ref[g.obj_id] @ invert(_orthonormal(g.T_cam_obj)) for g in gt[v] if g.obj_id in ref]
-        T = np.mean(Ts, 0)
-        out[v] = _orthonormal(T)
-    return out
-
-
 def test_cluster_leftovers_links_one_object_across_views_and_nothing_else():
     """Two cameras 300 mm apart looking at a 100 mm cube 1 m away: the same label whose centres,
     carried through the cameras, land on each other clusters; another label, a candidate far off
@@ -275,7 +253,7 @@ def test_leftover_with_a_wrong_rotation_takes_the_pose_that_explains_both_views(
     ds, db = lmo
     s = 17
     views = sorted(ds.scene_gt(s))
-    Twc = _gt_cameras(ds, s, views)
+    Twc = gt_cameras(ds, s, views)
     gt = {v: {g.obj_id: _orthonormal(g.T_cam_obj) for g in ds.scene_gt(s)[v]} for v in views}
     objs = [o for o in gt[views[0]] if all(o in gt[v] for v in views) and o in (1, 5, 6, 8)]
     turn = np.eye(4)
