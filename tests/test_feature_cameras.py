@@ -107,7 +107,7 @@ def test_refine_records_the_feature_cameras_and_none_is_the_objects_alone(tmp_pa
         t["scene_id"], t["im_id"], t["obj_id"], t["score"], res.T_cam_obj[keep], t["time"])))
     match_stage.main(match_stage.resolve_conf("paper"), LMO, "test", tmp_path / "c.csv", tmp_path / "m", log=quiet,
                      progress=False)
-    refine_stage.main(None, LMO, "test", tmp_path / "m", tmp_path / "on", log=quiet, progress=False)
+    summary = refine_stage.main(None, LMO, "test", tmp_path / "m", tmp_path / "on", log=quiet, progress=False)
     refine_stage.main(refine_stage.resolve_conf(None, feature_cameras="none"), LMO, "test", tmp_path / "m",
                       tmp_path / "off", log=quiet, progress=False)
     on = json.loads((tmp_path / "on" / "scene.json").read_text())
@@ -125,7 +125,7 @@ def test_refine_records_the_feature_cameras_and_none_is_the_objects_alone(tmp_pa
             if views.get(str(c["im_id"]), {}).get("used"):
                 T = np.array(c["T_world_cam_features"])
                 assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
-    assert n_used > 0
+    assert n_used > 0 and summary["feature_cameras_used"] == n_used
     assert not any("feature_cameras" in g["stats"] for g in off["groups"])
     # the refined scene itself is the same (only the leftovers are carried with the feature cameras)
     for ga, gb in zip(on["groups"], off["groups"]):

@@ -1029,6 +1029,8 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "image_check": ({k: int(sum(r["stats"].get("image_check", {}).get(k, 0) for r in results))
                          for k in ("refined", "aligned", "candidate")} if checker is not None else None),
         "leftovers_replaced": int(sum(r["stats"].get("image_check_leftovers", {}).get("replaced", 0) for r in results)),
+        "feature_cameras_used": int(sum(v["used"] for r in results
+                                        for v in r["stats"].get("feature_cameras", {}).get("views", {}).values())),
         "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
         "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
     }
@@ -1056,6 +1058,9 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
            if summary["single_view_groups"] else "")
         + ("; image check kept " + ", ".join(f"{n} {k}" for k, n in summary["image_check"].items())
            if summary["image_check"] else "")
+        + (f"; {summary['leftovers_replaced']} leftover candidates took another view's pose"
+           if summary["leftovers_replaced"] else "")
+        + (f"; feature cameras for {summary['feature_cameras_used']} views" if summary["feature_cameras_used"] else "")
         + f"; {summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "
         f"total {time.perf_counter() - t_start:.2f} s -> {out}")
     return summary
