@@ -240,6 +240,13 @@ def test_cluster_leftovers_links_one_object_across_views_and_nothing_else():
     T_deep[:3, 3] *= 1.15
     assert ic.cluster_leftovers([items[0], ic.Leftover(11, 1, T_deep)], Twc, {10: K, 11: K}, pts, wh) == [[0, 1]]
     assert ic.cluster_leftovers(items[:1], Twc, {10: K, 11: K}, pts, wh) == []
+    # two instances of one label 250 mm apart, seen in both views (listed in another order in the
+    # second view): each pairs with itself, never across
+    T_b = np.eye(4)
+    T_b[:3, 3] = [-250.0, 0, 0]
+    two = [ic.Leftover(10, 1, invert(Twc[10]) @ T_wo), ic.Leftover(10, 1, invert(Twc[10]) @ T_b),
+           ic.Leftover(11, 1, invert(Twc[11]) @ T_b), ic.Leftover(11, 1, invert(Twc[11]) @ T_wo)]
+    assert sorted(ic.cluster_leftovers(two, Twc, {10: K, 11: K}, pts, wh)) == [[0, 3], [1, 2]]
 
 
 def test_leftover_with_a_wrong_rotation_takes_the_pose_that_explains_both_views(lmo):
