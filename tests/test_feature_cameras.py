@@ -131,5 +131,18 @@ def test_refine_records_the_feature_cameras_and_none_is_the_objects_alone(tmp_pa
     for ga, gb in zip(on["groups"], off["groups"]):
         assert [c["T_world_cam"] for c in ga["cameras"]] == [c["T_world_cam"] for c in gb["cameras"]]
         assert [o["T_world_obj"] for o in ga["objects"]] == [o["T_world_obj"] for o in gb["objects"]]
+    # "scene": the used views' cameras are the feature cameras, held in the adjustment
+    refine_stage.main(refine_stage.resolve_conf(None, feature_cameras="scene"), LMO, "test", tmp_path / "m",
+                      tmp_path / "scene", log=quiet, progress=False)
+    sc = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    n_scene = 0
+    for g_on, g_sc in zip(on["groups"], sc["groups"]):
+        used = {v for v, i in g_on.get("stats", {}).get("feature_cameras", {}).get("views", {}).items() if i["used"]}
+        for c_on, c_sc in zip(g_on["cameras"], g_sc["cameras"]):
+            if str(c_on["im_id"]) in used and c_on["im_id"] == c_sc["im_id"]:
+                assert "image features" in c_sc["placed_by"]
+                assert np.allclose(c_sc["T_world_cam"], c_on["T_world_cam_features"], atol=1e-6)
+                n_scene += 1
+    assert n_scene > 0
     with pytest.raises(CosyError, match="feature_cameras"):
         refine_stage.resolve_conf(None, feature_cameras="sometimes")
