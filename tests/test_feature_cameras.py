@@ -146,3 +146,72 @@ def test_refine_records_the_feature_cameras_and_none_is_the_objects_alone(tmp_pa
     assert n_scene > 0
     with pytest.raises(CosyError, match="feature_cameras"):
         refine_stage.resolve_conf(None, feature_cameras="sometimes")
+
+
+def test_camera_without_objects_needs_more_inliers_and_takes_the_scale_from_the_candidates():
+    from cosy_cli.multiview import features as ft
+
+    conf = ft.FeatureConf()
+    T_ref_cam = _pose([0, 1, 0], -15.0, [-250.0, 10.0, 40.0])
+    d = T_ref_cam[:3, 3] / np.linalg.norm(T_ref_cam[:3, 3])
+    pair_T = T_ref_cam.copy()
+    pair_T[:3, 3] = d
+    X = np.array([[0.0, 0, 900], [150, -50, 1000]])
+    X_cam = (X - T_ref_cam[:3, 3]) @ T_ref_cam[:3, :3]
+    T = ft.camera_without_objects(np.eye(4), ft.PairPose(pair_T, 100, 300), conf, X, X_cam)
+    assert np.allclose(T, T_ref_cam, atol=1e-6)
+    # the same pair with only 40 inliers: enough next to an object-level camera, not alone
+    assert ft.camera_without_objects(np.eye(4), ft.PairPose(pair_T, 40, 300), conf, X, X_cam) is None
+    assert ft.feature_camera(np.eye(4), T_ref_cam, ft.PairPose(pair_T, 40, 300), conf, X, X_cam) is not None
+    # no candidate pair to take the scale from
+    assert ft.camera_without_objects(np.eye(4), ft.PairPose(pair_T, 100, 300), conf, X[:0], X_cam[:0]) is None
+
+
+@needs(LMO)
+def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_candidates_fixed(tmp_path):
+    """LM-O scene 29 (two views): right candidates (the GT) in the first view, every object turned
+    by 90 deg in the second. Matching links nothing, so the objects place no camera; the images
+    place the second view, and the leftover check gives its candidates the first view's poses."""
+    from cosy_cli.evaluation.pose_error import re as rot_err
+    from cosy_cli.geometry.rotations import rotation_about_axis
+    from cosy_cli.io import bop
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.geometry.poses import invert
+    from cosy_cli.multiview import match_stage, refine_stage
+    from cosy_cli.multiview.features import rotation_angle_deg
+    from realdata import orthonormal
+
+    ds = BopDataset(LMO, "test")
+    s = 29
+    gt = ds.scene_gt(s)
+    a, b = sorted(gt)[:2]
+    turn = np.eye(4)
+    turn[:3, :3] = rotation_about_axis(np.array([1.0, 0, 0]), np.array([np.pi / 2]))[0]
+    rows = [(s, v, g.obj_id, 1.0, orthonormal(g.T_cam_obj) @ (turn if v == b else np.eye(4)))
+            for v in (a, b) for g in gt[v]]
+    res = bop.PoseResults.from_arrays([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows],
+                                      [r[3] for r in rows], np.stack([r[4] for r in rows]), [-1.0] * len(rows))
+    (tmp_path / "c.csv").write_text(bop.format_results(res))
+    quiet = lambda *x, **k: None  # noqa: E731
+    match_stage.main(match_stage.resolve_conf("paper"), LMO, "test", tmp_path / "c.csv", tmp_path / "m", log=quiet,
+                     progress=False)
+    summary = refine_stage.main(None, LMO, "test", tmp_path / "m", tmp_path / "r", log=quiet, progress=False)
+    doc = json.loads((tmp_path / "r" / "scene.json").read_text())
+    (g,) = [x for x in doc["groups"] if x["scene_id"] == s]
+    assert not g["objects"] and b in g["unplaced_im_ids"]
+    info = g["stats"]["feature_cameras"]["views"][str(b)]
+    assert info["used"] and info["unplaced_by_the_objects"] and summary["feature_cameras_used"] >= 1
+    assert [c["im_id"] for c in g["feature_only_cameras"]] == [b]
+    T_gt = gt_cameras(ds, s, [a, b])
+    T_f = np.array(g["feature_only_cameras"][0]["T_world_cam_features"])
+    assert rotation_angle_deg(T_f[:3, :3], (invert(T_gt[a]) @ T_gt[b])[:3, :3]) < 3.0
+    reps = g["leftovers"]["replaced"]
+    assert {x["im_id"] for x in reps} == {b} and len(reps) > len(gt[b]) // 2  # 5 of the 7 here
+    pred = bop.read_results(tmp_path / "r" / "predictions.csv", check_rotations=False)
+    t = pred.table
+    for x in reps:
+        q = np.flatnonzero((t["im_id"].to_numpy() == b) & (t["obj_id"].to_numpy() == x["obj_id"]))
+        (g_b,) = [y for y in gt[b] if y.obj_id == x["obj_id"]]
+        err = float(np.ravel(rot_err(pred.T_cam_obj[q[0]][:3, :3], orthonormal(g_b.T_cam_obj)[:3, :3]))[0])
+        assert err < 10.0, (x, err)
+
