@@ -137,18 +137,11 @@ def feature_camera(T_world_ref: np.ndarray, T_world_cam: np.ndarray, pair: PairP
     T_ref_cam = pair.T_a_b
     if rotation_angle_deg(T_ref_cam_obj[:3, :3], T_ref_cam[:3, :3]) > conf.max_disagree_deg:
         return None
-    d = T_ref_cam[:3, 3] / max(np.linalg.norm(T_ref_cam[:3, 3]), 1e-12)
     if centres_ref is not None and len(centres_ref):
-        # X_ref = R X_cam + s d for each object seen in both views (its candidates' centres, mm)
-        R = T_ref_cam[:3, :3]
-        s = float(np.median((np.asarray(centres_ref) - np.asarray(centres_cam) @ R.T) @ d))
+        s = _median_scale(T_ref_cam, centres_ref, centres_cam)
     else:
-        s = float(T_ref_cam_obj[:3, 3] @ d)
-    if s <= 0.0:
-        return None
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = T_ref_cam[:3, :3], s * d
-    return T_world_ref @ T
+        s = float(T_ref_cam_obj[:3, 3] @ _direction(T_ref_cam))
+    return _scaled_camera(T_world_ref, T_ref_cam, s)
 
 
 def camera_without_objects(T_world_ref: np.ndarray, pair: PairPose | None, conf: FeatureConf,
@@ -161,11 +154,26 @@ def camera_without_objects(T_world_ref: np.ndarray, pair: PairPose | None, conf:
     least one such pair of candidates; None otherwise."""
     if pair is None or pair.n_inliers < conf.min_inliers_alone or not len(centres_ref):
         return None
-    T_ref_cam = pair.T_a_b
-    d = T_ref_cam[:3, 3] / max(np.linalg.norm(T_ref_cam[:3, 3]), 1e-12)
-    s = float(np.median((np.asarray(centres_ref) - np.asarray(centres_cam) @ T_ref_cam[:3, :3].T) @ d))
+    return _scaled_camera(T_world_ref, pair.T_a_b, _median_scale(pair.T_a_b, centres_ref, centres_cam))
+
+
+def _direction(T_ref_cam: np.ndarray) -> np.ndarray:
+    """The unit baseline direction of an image pair's pose (its translation has no scale)."""
+    return T_ref_cam[:3, 3] / max(np.linalg.norm(T_ref_cam[:3, 3]), 1e-12)
+
+
+def _median_scale(T_ref_cam: np.ndarray, centres_ref, centres_cam) -> float:
+    """The baseline length (mm) that objects seen in both views give: X_ref = R X_cam + s d for
+    each (candidates' centres (n, 3) mm in the reference and the view), median over them."""
+    R = T_ref_cam[:3, :3]
+    return float(np.median((np.asarray(centres_ref) - np.asarray(centres_cam) @ R.T) @ _direction(T_ref_cam)))
+
+
+def _scaled_camera(T_world_ref: np.ndarray, T_ref_cam: np.ndarray, s: float) -> np.ndarray | None:
+    """T_world_cam of the image pair's pose with its baseline scaled to ``s`` mm; None when s <= 0
+    (the objects put the view on the other side)."""
     if s <= 0.0:
         return None
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = T_ref_cam[:3, :3], s * d
+    T[:3, :3], T[:3, 3] = T_ref_cam[:3, :3], s * _direction(T_ref_cam)
     return T_world_ref @ T

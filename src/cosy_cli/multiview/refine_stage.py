@@ -91,6 +91,7 @@ truncated since ``cosy match`` wrote it is refused.
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from pathlib import Path
@@ -190,10 +191,8 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     base["min_agreeing"] = int(base["min_agreeing"])
     base["n_points"] = int(base["n_points"])
     base["symmetry_steps"] = int(base["symmetry_steps"])
-    base["rematch"] = base["rematch"] not in (False, "false", "False", 0, "0")
-    base["guard_views"] = base["guard_views"] not in (False, "false", "False", 0, "0")
-    base["image_check_align"] = base["image_check_align"] not in (False, "false", "False", 0, "0")
-    base["image_check_leftovers"] = base["image_check_leftovers"] not in (False, "false", "False", 0, "0")
+    for k in ("rematch", "guard_views", "image_check_align", "image_check_leftovers"):
+        base[k] = base[k] not in (False, "false", "False", 0, "0")
     if base["feature_cameras"] not in FEATURE_CAMERAS:
         raise CosyError(f"refine feature_cameras {base['feature_cameras']!r} is not one of {', '.join(FEATURE_CAMERAS)}")
     base["feature_min_inliers"] = int(base["feature_min_inliers"])
@@ -221,6 +220,11 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
 
 OUTPUTS = ("scene+candidates", "scene")
 FEATURE_CAMERAS = ("leftovers", "scene", "none")
+
+
+def leftover_check_on(conf: dict, checker) -> bool:
+    """Whether a group with this image checker (None: no image check) gets the leftover check."""
+    return checker is not None and conf["image_check_leftovers"] and conf["output"] == "scene+candidates"
 
 
 def _legacy_keys(conf):
@@ -539,12 +543,14 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     vidx = {v: k for k, v in enumerate(views)}
     # feature cameras: for the scene ("scene"), or for the leftover check, which runs on RGB views
     # without depth ("leftovers")
-    wanted = conf["feature_cameras"] == "scene" or (
-        conf["feature_cameras"] == "leftovers" and checker is not None and conf["image_check_leftovers"]
-        and conf["output"] == "scene+candidates" and any(ds.depth_path(s, v) is None for v in im_ids))
+    wanted = not known_cameras and (conf["feature_cameras"] == "scene" or (
+        conf["feature_cameras"] == "leftovers" and leftover_check_on(conf, checker)
+        and any(ds.depth_path(s, v) is None for v in im_ids)))
     from .image_check import images_available
 
-    use_features = not known_cameras and wanted and len(views) > 1 and images_available(ds, s, views)
+    use_features = wanted and len(views) > 1 and images_available(ds, s, views)
+    rgb = functools.cache(lambda v: ds.read_rgb(s, v))  # the group's images, each read once
+    features = functools.cache(lambda: _feature_cache(conf))  # SIFT per image, computed once (made when needed)
     tab = cands.table
     c_im = tab["im_id"].to_numpy()
     c_score = tab["score"].to_numpy()
@@ -586,8 +592,8 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         if use_features and gauge in vidx and len(views) > 1:
             # the cameras' rotations and baseline directions from the images (multiview.features),
             # the scale from the objects; then the objects again with those cameras held
-            res = _feature_cameras(res, ds, s, views, vidx, gauge, cams, cv, cand_obj, T_cam_cand, K, obj_label, geo,
-                                   c_score[cand_ids], conf, stats, placed_by)
+            res = _feature_cameras(res, rgb, features(), views, vidx, gauge, cams, cv, cand_obj, T_cam_cand, K,
+                                   obj_label, geo, c_score[cand_ids], conf, stats, placed_by)
         Twc, T_world_obj = res.T_world_cam, res.T_world_obj
         n_c = np.bincount(cand_obj, minlength=len(objs))
         score = np.full(len(objs), -np.inf)
@@ -685,11 +691,12 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 if add:
                     T_world_obj = np.concatenate([T_world_obj, np.stack(add)])
         stats["n_rematched_objects"] = n_rematched
+    all_cands = sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]})
     never = [v for v in im_ids if v not in placed]
-    if (wanted and conf["feature_cameras"] == "leftovers" and not known_cameras and gauge in placed and never
+    if (wanted and conf["feature_cameras"] == "leftovers" and gauge in placed and never
             and images_available(ds, s, [gauge] + never)):
         # views the objects could not place at all: cameras from the images alone, for the leftovers
-        _unplaced_feature_cameras(ds, s, gauge, placed[gauge], never, cams, cands, g, conf, stats)
+        _unplaced_feature_cameras(rgb, features(), gauge, placed[gauge], never, cams, cands, all_cands, stats)
     feature_cams = stats.pop("_feature_T_world_cam", {})  # the leftovers' cameras ("leftovers" mode)
     dt = time.perf_counter() - t0
     stats["time_s"] = round(dt, 6)
@@ -704,7 +711,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                     pred.append((s, v, o["obj_id"], o["score"], T_cam_obj[k, j]))
                     pred_obj.append(j)
         if checker is not None and pred:
-            pred = _image_check(checker, ds, s, pred, pred_obj, objects_out, cands, cams, stats)
+            pred = _image_check(checker, rgb, pred, pred_obj, objects_out, cands, cams, stats)
             dt = time.perf_counter() - t0
             stats["time_s"] = round(dt, 6)
     for o in objects_out:  # scene.json says where the object's candidates stay instead
@@ -722,12 +729,12 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
            if any(v not in views for v in feature_cams) else {}),
         "objects": objects_out, "stats": stats,
         "_pred": pred, "_unused": sorted(set(unused)), "_time": dt, "_feature_cams": feature_cams,
-        "_all_cands": sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]}),
+        "_all_cands": all_cands, "_rgb": rgb,
     }
 
 
-def _image_check(checker, ds: BopDataset, s: int, pred: list, pred_obj: list, objects_out: list,
-                 cands: bop.PoseResults, cams: dict, stats: dict) -> list:
+def _image_check(checker, rgb, pred: list, pred_obj: list, objects_out: list, cands: bop.PoseResults,
+                 cams: dict, stats: dict) -> list:
     """The image check of a group's refined predictions (:mod:`~cosy_cli.multiview.image_check`):
     each row's pose replaced by the best-scoring of refined / aligned / the view's own candidates;
     each object's entry records per view which was kept (``"image_check": {im_id: choice}``)."""
@@ -740,8 +747,7 @@ def _image_check(checker, ds: BopDataset, s: int, pred: list, pred_obj: list, ob
         ids = [int(c) for c in objects_out[j]["cand_ids"] if int(c_im[int(c)]) == int(v)]
         items.append(ic.ViewItem(int(v), int(o), T, cands.T_cam_obj[ids] if ids else np.zeros((0, 4, 4))))
     views = sorted({int(x[1]) for x in pred})
-    images = {v: ds.read_rgb(s, v) for v in views}
-    res = checker.check(items, images, {v: cams[v].K for v in views})
+    res = checker.check(items, {v: rgb(v) for v in views}, {v: cams[v].K for v in views})
     out = []
     counts = dict.fromkeys(ic.CHOICES, 0)
     for q, ((sc_id, v, o, sc, _), j) in enumerate(zip(pred, pred_obj)):
@@ -752,7 +758,15 @@ def _image_check(checker, ds: BopDataset, s: int, pred: list, pred_obj: list, ob
     return out
 
 
-def _feature_cameras(res, ds: BopDataset, s: int, views: list, vidx: dict, gauge: int, cams: dict, cv, cand_obj,
+def _feature_cache(conf: dict):
+    """One :class:`~cosy_cli.multiview.features.FeatureCache` per group, with the refine settings."""
+    from . import features as ft
+
+    m = int(conf["feature_min_inliers"])
+    return ft.FeatureCache(ft.FeatureConf(min_inliers=m, min_inliers_alone=2 * m))
+
+
+def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams: dict, cv, cand_obj,
                      T_cam_cand, K, obj_label, geo, cand_score, conf: dict, stats: dict, placed_by: dict):
     """Replace the object-level cameras of the views whose image pair with the gauge view is
     trusted (:func:`~cosy_cli.multiview.features.feature_camera`) and adjust the objects again
@@ -761,22 +775,19 @@ def _feature_cameras(res, ds: BopDataset, s: int, views: list, vidx: dict, gauge
     from . import features as ft
 
     t0 = time.perf_counter()
-    fconf = ft.FeatureConf(min_inliers=int(conf["feature_min_inliers"]))
-    cache = ft.FeatureCache(fconf)
     Twc = res.T_world_cam.copy()
     g = vidx[gauge]
-    rgb_g = ds.read_rgb(s, gauge)
     fixed, info = [g], {}
     for v in views:
         if v == gauge:
             continue
-        pair = ft.relative_pose(cache, gauge, rgb_g, cams[gauge].K, v, ds.read_rgb(s, v), cams[v].K)
+        pair = ft.relative_pose(cache, gauge, rgb(gauge), cams[gauge].K, v, rgb(v), cams[v].K)
         # the scale from the objects seen in both views: their candidates' centres
         k = vidx[v]
         both = [o for o in np.unique(cand_obj) if (g in cv[cand_obj == o]) and (k in cv[cand_obj == o])]
         c_ref = np.array([T_cam_cand[np.flatnonzero((cand_obj == o) & (cv == g))[0], :3, 3] for o in both]).reshape(-1, 3)
         c_cam = np.array([T_cam_cand[np.flatnonzero((cand_obj == o) & (cv == k))[0], :3, 3] for o in both]).reshape(-1, 3)
-        T = ft.feature_camera(Twc[g], Twc[k], pair, fconf, c_ref, c_cam)
+        T = ft.feature_camera(Twc[g], Twc[k], pair, cache.conf, c_ref, c_cam)
         info[str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None}
         if T is not None:
             Twc[vidx[v]] = T
@@ -795,8 +806,8 @@ def _feature_cameras(res, ds: BopDataset, s: int, views: list, vidx: dict, gauge
                             loss_threshold_px=conf["loss_threshold_px"], fixed_views=sorted(fixed), symmetries=S0)
 
 
-def _unplaced_feature_cameras(ds: BopDataset, s: int, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
-                              cands: bop.PoseResults, g: dict, conf: dict, stats: dict) -> None:
+def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
+                              cands: bop.PoseResults, all_cands: list, stats: dict) -> None:
     """Cameras of the group's views that the objects could not place, from their image pair with
     the gauge view (:func:`~cosy_cli.multiview.features.camera_without_objects`; the scale from
     the candidates of labels seen once in each of the two views), for the leftover check only:
@@ -804,20 +815,15 @@ def _unplaced_feature_cameras(ds: BopDataset, s: int, gauge: int, T_world_gauge:
     from . import features as ft
 
     t0 = time.perf_counter()
-    fconf = ft.FeatureConf(min_inliers=int(conf["feature_min_inliers"]),
-                           min_inliers_alone=2 * int(conf["feature_min_inliers"]))
-    cache = ft.FeatureCache(fconf)
     tab = cands.table
     c_im, c_obj = tab["im_id"].to_numpy(), tab["obj_id"].to_numpy()
-    ids = np.array(sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]}),
-                   dtype=np.int64)
+    ids = np.array(all_cands, dtype=np.int64)
 
     def once(v):  # label -> the candidate of a label seen once in view v
         labs, n = np.unique(c_obj[ids][c_im[ids] == v], return_counts=True)
         return {int(o): int(ids[(c_im[ids] == v) & (c_obj[ids] == o)][0]) for o in labs[n == 1]}
 
     ref = once(gauge)
-    rgb_g = ds.read_rgb(s, gauge)
     fc = stats.setdefault("feature_cameras", {"views": {}, "time_s": 0.0})
     out = stats.setdefault("_feature_T_world_cam", {})
     for v in never:
@@ -825,8 +831,8 @@ def _unplaced_feature_cameras(ds: BopDataset, s: int, gauge: int, T_world_gauge:
         both = sorted(set(ref) & set(here))
         c_ref = np.array([cands.T_cam_obj[ref[o]][:3, 3] for o in both]).reshape(-1, 3)
         c_cam = np.array([cands.T_cam_obj[here[o]][:3, 3] for o in both]).reshape(-1, 3)
-        pair = ft.relative_pose(cache, gauge, rgb_g, cams[gauge].K, v, ds.read_rgb(s, v), cams[v].K)
-        T = ft.camera_without_objects(T_world_gauge, pair, fconf, c_ref, c_cam)
+        pair = ft.relative_pose(cache, gauge, rgb(gauge), cams[gauge].K, v, rgb(v), cams[v].K)
+        T = ft.camera_without_objects(T_world_gauge, pair, cache.conf, c_ref, c_cam)
         fc["views"][str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None,
                                "unplaced_by_the_objects": True}
         if T is not None:
@@ -908,7 +914,8 @@ def _check_leftovers(checker, ds: BopDataset, r: dict, cands: bop.PoseResults, d
     items = [ic.Leftover(v, o, cands.T_cam_obj[c]) for c, v, o, _ in fb]
     views = sorted({v for _, v, _, _ in fb})
     cams = ds.scene_camera(s)
-    res = checker.check_leftovers(items, {v: ds.read_rgb(s, v) for v in views}, {v: cams[v].K for v in views}, placed)
+    rgb = r.get("_rgb") or (lambda v: ds.read_rgb(s, v))
+    res = checker.check_leftovers(items, {v: rgb(v) for v in views}, {v: cams[v].K for v in views}, placed)
     changed = np.flatnonzero(res.source != np.arange(len(fb)))
     r["_leftover_T"] = {fb[k][0]: res.T[k] for k in changed}
     r["leftovers"] = {"clusters": [[fb[k][0] for k in np.flatnonzero(res.cluster == ci)]
@@ -1034,9 +1041,9 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
             for g in groups:
                 chk = checker if checker is not None and id(g) in checked else None
                 r = refine_group(g, cands, ds, geometry, conf, known, chk)
-                if chk is not None and conf["image_check_leftovers"] and conf["output"] == "scene+candidates" \
-                        and not r.get("single_view"):
+                if leftover_check_on(conf, chk) and not r.get("single_view"):
                     _check_leftovers(chk, ds, r, cands, diam, conf, score_min)
+                r.pop("_rgb", None)  # the group's images: not kept past it
                 results.append(r)
                 if bar is not None:
                     bar.update(1)
