@@ -43,7 +43,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..conf import merge_conf
+from ..conf import as_bool, merge_conf
 from ..errors import CosyError
 from ..io import atomic, bop, cache, manifest
 from ..io.dataset import BopDataset
@@ -69,7 +69,7 @@ def resolve_conf(conf: str | dict | None = "bop19", **overrides) -> dict:
         raise CosyError("vsd_delta and max_sym_disc_step must be > 0")
     base["vsd_delta"] = float(base["vsd_delta"])
     base["max_sym_disc_step"] = float(base["max_sym_disc_step"])
-    base["vsd"] = bool(base["vsd"])
+    base["vsd"] = as_bool(base["vsd"], "vsd", "evaluate")
     return base
 
 

@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..conf import merge_conf
+from ..conf import as_bool, merge_conf
 from ..errors import CosyError
 from ..io import atomic, bop, cache, manifest
 from ..io.cache import file_sha1, reuse_existing_output
@@ -146,12 +146,12 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     base["threshold_rel"] = float(base["threshold_rel"])
     base["adaptive_k"] = float(base["adaptive_k"])
     base["hypothesis_penalty"] = float(base["hypothesis_penalty"])
-    base["weak_links"] = bool(base["weak_links"])
+    base["weak_links"] = as_bool(base["weak_links"], "weak_links", "match")
     base["score_threshold"] = float(base["score_threshold"])
-    base["refit"] = bool(base["refit"])
-    base["known_cameras"] = bool(base["known_cameras"])
+    base["refit"] = as_bool(base["refit"], "refit", "match")
+    base["known_cameras"] = as_bool(base["known_cameras"], "known_cameras", "match")
     base["label_groups"] = label_groups.normalize_setting(base["label_groups"])
-    base["cross_label_hypotheses"] = bool(base["cross_label_hypotheses"])
+    base["cross_label_hypotheses"] = as_bool(base["cross_label_hypotheses"], "cross_label_hypotheses", "match")
     return base
 
 

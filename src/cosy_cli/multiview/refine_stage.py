@@ -99,7 +99,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..conf import merge_conf
+from ..conf import as_bool, merge_conf
 from ..errors import CosyError
 from ..geometry.poses import invert
 from ..io import atomic, bop, cache, manifest
@@ -192,7 +192,7 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     base["n_points"] = int(base["n_points"])
     base["symmetry_steps"] = int(base["symmetry_steps"])
     for k in ("rematch", "guard_views", "image_check_align", "image_check_leftovers"):
-        base[k] = base[k] not in (False, "false", "False", 0, "0")
+        base[k] = as_bool(base[k], k, "refine")
     if base["feature_cameras"] not in FEATURE_CAMERAS:
         raise CosyError(f"refine feature_cameras {base['feature_cameras']!r} is not one of {', '.join(FEATURE_CAMERAS)}")
     base["feature_min_inliers"] = int(base["feature_min_inliers"])
@@ -234,7 +234,7 @@ def _legacy_keys(conf):
     conf = dict(conf)
     keep = conf.pop("keep_unmatched")
     if keep is not None:
-        conf.setdefault("output", "scene+candidates" if keep not in (False, "false", "False", 0, "0") else "scene")
+        conf.setdefault("output", "scene+candidates" if as_bool(keep, "keep_unmatched", "refine") else "scene")
     for k in ("unmatched_score_factor", "unmatched_dedup_mm"):
         conf.pop(k, None)
     return conf
