@@ -463,13 +463,15 @@ def test_known_cameras_need_camera_poses(tables, tmp_path):
 def test_ply_reader_matches_trimesh(tables, tmp_path):
     import trimesh
 
+    from cosy_cli.objects.database import read_ply_mesh
+
     path = tables / "models" / "obj_000002.ply"
     mesh = trimesh.load(path, force="mesh", process=False)
-    V, F = match_stage.read_ply_mesh(path)
+    V, F = read_ply_mesh(path)
     assert np.allclose(V, mesh.vertices) and (F == mesh.faces).all()
     ascii_path = tmp_path / "a.ply"
     ascii_path.write_bytes(mesh.export(file_type="ply", encoding="ascii"))
-    V2, F2 = match_stage.read_ply_mesh(ascii_path)
+    V2, F2 = read_ply_mesh(ascii_path)
     assert np.allclose(V2, mesh.vertices, atol=1e-5) and (F2 == mesh.faces).all()
     pts = match_stage.model_points(path, 32)
     assert pts.shape == (32, 3)

@@ -190,8 +190,9 @@ def fit_models(a: int, b: int, Xa: tuple, Xb: tuple, diam: float, rel: float = A
 
 
 def _surface_samples(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from .match_stage import read_ply_mesh, sample_surface
+    from .match_stage import sample_surface
     from ..geometry.sampling import farthest_point_subset
+    from ..objects.database import read_ply_mesh
 
     try:
         V, F = read_ply_mesh(path)

@@ -213,99 +213,8 @@ def is_complete(out: str | Path) -> bool:
 
 
 # --------------------------------------------------------------------------------------------
-# model points without trimesh (start-up time): a small PLY reader + area-uniform sampling
+# model points without trimesh (start-up time): the numpy PLY reader + area-uniform sampling
 # --------------------------------------------------------------------------------------------
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
-    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
-    "double": "f8", "float64": "f8",
-}
-
-
-def read_ply_mesh(path: str | Path, data: bytes | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Vertices (V, 3) and triangles (F, 3) of a PLY file (binary or ASCII), read with numpy
-    (``data``: the file's bytes when the caller has already read them).
-
-    Handles the common layouts (scalar vertex properties, triangle faces as one list property).
-    Anything else raises ``ValueError`` (callers fall back to trimesh).
-    """
-    path = Path(path)
-    if data is None:
-        data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError("not a PLY file")
-    nl = data.find(b"\n", end)
-    header = data[:end].decode("ascii", "replace").splitlines()
-    body = data[nl + 1:]
-    fmt = None
-    elements: list[dict] = []
-    for line in header:
-        w = line.split()
-        if not w:
-            continue
-        if w[0] == "format":
-            fmt = w[1]
-        elif w[0] == "element":
-            elements.append({"name": w[1], "count": int(w[2]), "props": []})
-        elif w[0] == "property" and elements:
-            if w[1] == "list":
-                elements[-1]["props"].append((w[4], "list", _PLY_TYPES[w[2]], _PLY_TYPES[w[3]]))
-            else:
-                elements[-1]["props"].append((w[2], "scalar", _PLY_TYPES[w[1]], None))
-    names = [e["name"] for e in elements]
-    if "vertex" not in names:
-        raise ValueError("no vertex element")
-    verts, faces = None, None
-    if fmt == "ascii":
-        lines = body.decode("ascii").split("\n")
-        pos = 0
-        for e in elements:
-            block = lines[pos:pos + e["count"]]
-            pos += e["count"]
-            if e["name"] == "vertex":
-                pn = [p[0] for p in e["props"]]
-                arr = np.array(" ".join(block).split(), dtype=np.float64).reshape(e["count"], len(pn))
-                verts = arr[:, [pn.index(a) for a in "xyz"]]
-            elif e["name"] == "face":
-                if len(e["props"]) != 1 or e["props"][0][1] != "list":
-                    raise ValueError("face element layout not handled")
-                arr = np.array(" ".join(block).split(), dtype=np.int64)
-                if e["count"] and (len(arr) != 4 * e["count"] or np.any(arr.reshape(-1, 4)[:, 0] != 3)):
-                    raise ValueError("non-triangle faces")
-                faces = arr.reshape(-1, 4)[:, 1:]
-        return verts, faces
-    if fmt not in ("binary_little_endian", "binary_big_endian"):
-        raise ValueError(f"PLY format {fmt!r}")
-    bo = "<" if fmt == "binary_little_endian" else ">"
-    off = 0
-    for e in elements:
-        if all(p[1] == "scalar" for p in e["props"]):
-            dt = np.dtype([(p[0], bo + p[2]) for p in e["props"]])
-            arr = np.frombuffer(body, dtype=dt, count=e["count"], offset=off)
-            off += dt.itemsize * e["count"]
-            if e["name"] == "vertex":
-                verts = np.stack([arr[a].astype(np.float64) for a in "xyz"], axis=1)
-        elif e["name"] == "face" and sum(p[1] == "list" for p in e["props"]) == 1:
-            fields = []
-            for p in e["props"]:
-                if p[1] == "list":
-                    fields += [("n", bo + p[2]), ("idx", bo + p[3], (3,))]
-                else:
-                    fields.append((p[0], bo + p[2]))
-            dt = np.dtype(fields)
-            arr = np.frombuffer(body, dtype=dt, count=e["count"], offset=off)
-            if e["count"] and np.any(arr["n"] != 3):
-                raise ValueError("non-triangle faces")
-            faces = arr["idx"].astype(np.int64)
-            off += dt.itemsize * e["count"]
-        else:
-            if e["name"] in ("vertex", "face") or verts is None or faces is None:
-                raise ValueError(f"element {e['name']} layout not handled")
-            break  # elements after vertex and face are not needed
-    return verts, faces
-
-
 def sample_surface(vertices: np.ndarray, faces: np.ndarray | None, n: int, seed: int = 0) -> np.ndarray:
     """n area-uniform points (mm) on the triangles (deterministic); the vertices without faces."""
     V = np.asarray(vertices, dtype=np.float64)
@@ -330,14 +239,14 @@ def model_points(path: str | Path, n_points: int, seed: int = 0) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise CosyError("model file not found (BOP models are models/obj_XXXXXX.ply)", path=path)
-    from ..objects.database import check_mesh_arrays, check_ply_data, load_mesh
+    from ..objects.database import check_mesh_arrays, check_ply_data, load_mesh, read_ply_mesh
 
     try:
         if path.suffix.lower() != ".ply":
             raise ValueError("not a PLY")
         data = path.read_bytes()  # read once: checked against its header, then parsed
-        check_ply_data(path, data)  # CosyError when the file holds less than its header declares
-        V, F = read_ply_mesh(path, data)
+        header = check_ply_data(path, data)  # CosyError when the file holds less than its header declares
+        V, F = read_ply_mesh(path, data, header)
     except (ValueError, KeyError, IndexError, UnicodeDecodeError):
         mesh = load_mesh(path)
         V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)

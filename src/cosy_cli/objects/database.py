@@ -199,6 +199,74 @@ def _declared(header: PlyHeader) -> str:
     return " and ".join(f"{c} {names.get(n, n)}" for n, c, _ in header.elements)
 
 
+_PLY_NUMPY = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def read_ply_mesh(path: str | Path, data: bytes | None = None, header: PlyHeader | None = None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (V, 3) mm and triangles (F, 3) of a PLY file (binary or ASCII) read with numpy,
+    without trimesh (start-up time): ``data`` the file's bytes, ``header`` its
+    :func:`read_ply_header`, when the caller has them. Handles the common layouts (scalar vertex
+    properties, triangle faces as one list property); anything else raises ``ValueError`` (callers
+    fall back to :func:`load_mesh`); a malformed header is a :class:`MeshFileError`."""
+    path = Path(path)
+    if data is None:
+        data = path.read_bytes()
+    h = header or read_ply_header(path, data)
+    names = [n for n, _, _ in h.elements]
+    if "vertex" not in names:
+        raise ValueError("no vertex element")
+    body = data[h.data_offset:]
+    verts, faces = None, None
+    if h.format == "ascii":
+        lines = body.decode("ascii").split("\n")
+        pos = 0
+        for name, count, props in h.elements:
+            block = lines[pos:pos + count]
+            pos += count
+            if name == "vertex":
+                pn = [p[0] for p in props]
+                arr = np.array(" ".join(block).split(), dtype=np.float64).reshape(count, len(pn))
+                verts = arr[:, [pn.index(a) for a in "xyz"]]
+            elif name == "face":
+                if len(props) != 1 or props[0][2] is None:
+                    raise ValueError("face element layout not handled")
+                arr = np.array(" ".join(block).split(), dtype=np.int64)
+                if count and (len(arr) != 4 * count or np.any(arr.reshape(-1, 4)[:, 0] != 3)):
+                    raise ValueError("non-triangle faces")
+                faces = arr.reshape(-1, 4)[:, 1:]
+        return verts, faces
+    bo = "<" if h.format == "binary_little_endian" else ">"
+    off = 0
+    for name, count, props in h.elements:
+        if all(lt is None for _, _, lt in props):
+            dt = np.dtype([(pn, bo + _PLY_NUMPY[t]) for pn, t, _ in props])
+            arr = np.frombuffer(body, dtype=dt, count=count, offset=off)
+            off += dt.itemsize * count
+            if name == "vertex":
+                verts = np.stack([arr[a].astype(np.float64) for a in "xyz"], axis=1)
+        elif name == "face" and sum(lt is not None for _, _, lt in props) == 1:
+            fields = []
+            for pn, t, lt in props:
+                if lt is not None:
+                    fields += [("n", bo + _PLY_NUMPY[lt]), ("idx", bo + _PLY_NUMPY[t], (3,))]
+                else:
+                    fields.append((pn, bo + _PLY_NUMPY[t]))
+            dt = np.dtype(fields)
+            arr = np.frombuffer(body, dtype=dt, count=count, offset=off)
+            if count and np.any(arr["n"] != 3):
+                raise ValueError("non-triangle faces")
+            faces = arr["idx"].astype(np.int64)
+            off += dt.itemsize * count
+        else:
+            if name in ("vertex", "face") or verts is None or faces is None:
+                raise ValueError(f"element {name} layout not handled")
+            break  # elements after vertex and face are not needed
+    return verts, faces
+
+
 def check_ply_data(path: str | Path, data: bytes | None = None) -> PlyHeader:
     """CosyError naming the file when a PLY holds less data than its header declares (a file cut
     short: binary sizes are summed element by element, ASCII files need one line per element)."""
