@@ -83,9 +83,13 @@ def synth(ds_root: Path, split: str, kind: str, seed: int, out: Path) -> Path:
     return out
 
 
-def evaluate(ds_root: Path, split: str, preds: Path, out: Path, scene_ids) -> float:
+def evaluate(ds_root: Path, split: str, preds: Path, out: Path, scene_ids, with_ci: bool = False):
+    """AR (MSSD, MSPD) of predictions on scene_ids; with ``with_ci`` also its 95 % bootstrap
+    interval over the scenes (or images: ``cosy evaluate``'s ``bop19_ci``)."""
     s = evaluate_stage.main({"vsd": False}, ds_root, split, preds, out, overwrite=True, metrics="bop19",
                             scene_ids=scene_ids, log=quiet, progress=False)
+    if with_ci:
+        return float(s[METRIC]), tuple(s["bop19_ci"][METRIC])
     return float(s[METRIC])
 
 
@@ -105,8 +109,9 @@ def case(ds_root: Path, split: str, cands: Path, work: Path, subsets: dict, matc
     preds, m, r = multiview(ds_root, split, cands, work, match_conf, refine_conf)
     out = {"match": m, "refine": r}
     for name, ids in subsets.items():
-        out[name] = (evaluate(ds_root, split, cands, work / f"eval_sv_{name}", ids),
-                     evaluate(ds_root, split, preds, work / f"eval_mv_{name}", ids))
+        mv, ci = evaluate(ds_root, split, preds, work / f"eval_mv_{name}", ids, with_ci=True)
+        out[name] = (evaluate(ds_root, split, cands, work / f"eval_sv_{name}", ids), mv)
+        out[f"{name}_ci"] = ci
     return out
 
 
@@ -167,7 +172,7 @@ def main(argv=None) -> None:
     ds = BopDataset(lmo, "test")
     subsets = {s: subset_ids(ds, s) for s in args.subsets.split(",")}
     seeds = [int(s) for s in args.seeds.split(",")]
-    rows = []  # (data, kind, subset, sv, mv)
+    rows = []  # (data, kind, subset, sv, mv, mv interval or None)
     t0 = time.time()
     for kind in [k for k in args.kinds.split(",") if k]:
         res = {s: [] for s in subsets}
@@ -182,7 +187,7 @@ def main(argv=None) -> None:
                                                             ((s, r[s]) for s in subsets)), flush=True)
         for s in subsets:
             a = np.array(res[s])
-            rows.append(("lmo_dev", KIND_NAMES[kind], s, a[:, 0].mean(), a[:, 1].mean()))
+            rows.append(("lmo_dev", KIND_NAMES[kind], s, a[:, 0].mean(), a[:, 1].mean(), None))
     own_h = [int(h) for h in args.own_hypotheses.split(",") if h]
 
     def own_rows(data: str, root: Path, split: str, cands: Path, subs: dict, tag: str) -> None:
@@ -193,7 +198,7 @@ def main(argv=None) -> None:
             r = case(root, split, cands, w, subs, {**mc, "hypotheses": h} if h > 1 else mc, rc)
             name = KIND_NAMES["own"] + (f", {h} hypotheses" if len(own_h) > 1 or h > 1 else "")
             for s in subs:
-                rows.append((data, name, s, *r[s]))
+                rows.append((data, name, s, *r[s], r[f"{s}_ci"]))
             print(f"  {tag} own, {h} hypotheses: match {r['match']['time_per_group_ms']:.2f} ms per group; "
                   + ", ".join(f"{s} {r[s][0]:.3f} -> {r[s][1]:.3f}" for s in subs), flush=True)
 
@@ -214,10 +219,12 @@ def main(argv=None) -> None:
             c = synth(ycbv, "train_real", "1/2", seed, w / "cands.csv")
             res.append(case(ycbv, "train_real", c, w, ysub, mc, rc)["all"])
         a = np.array(res)
-        rows.append(("ycbv_0000 (10 frames)", KIND_NAMES["1/2"], "all", a[:, 0].mean(), a[:, 1].mean()))
-    lines = ["| data | candidates | scenes | single view | multi-view | gain |", "| --- | --- | --- | --- | --- | --- |"]
-    for d, k, s, a, b in rows:
-        lines.append(f"| {d} | {k} | {s} | {a:.3f} | {b:.3f} | {b - a:+.3f} |")
+        rows.append(("ycbv_0000 (10 frames)", KIND_NAMES["1/2"], "all", a[:, 0].mean(), a[:, 1].mean(), None))
+    lines = ["| data | candidates | scenes | single view | multi-view (95 % interval) | gain |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for d, k, s, a, b, ci in rows:  # synthetic rows: means over seeds, no interval
+        iv = f" ({ci[0]:.3f}–{ci[1]:.3f})" if ci else ""
+        lines.append(f"| {d} | {k} | {s} | {a:.3f} | {b:.3f}{iv} | {b - a:+.3f} |")
     table = "\n".join(lines)
     print(table)
     print(f"({time.time() - t0:.0f} s; seeds {seeds}; settings {mc} {rc})")

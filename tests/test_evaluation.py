@@ -669,3 +669,41 @@ def test_scene_level_targets_for_the_multiview_task():
     images = pd.DataFrame({"scene_id": [1, 1, 2], "im_id": [0, 3, 5]})
     t = protocols.scene_level_targets(gt, images)
     assert t.values.tolist() == [[1, 0, 4, 2], [1, 0, 7, 1], [1, 3, 4, 2], [1, 3, 7, 1], [2, 5, 4, 1]]
+
+
+# --------------------------------------------------------------------------------------------
+# bootstrap intervals of the average recalls
+# --------------------------------------------------------------------------------------------
+def test_bootstrap_intervals_by_hand():
+    """Identical units give a zero-width interval at their AR; units without targets change
+    nothing; a resample's AR weights units by their targets; seeded, so reproducible."""
+    same = {"mssd": np.tile([[1, 2, 3, 4]], (5, 1)), "mspd": np.tile([[4, 4, 4, 4]], (5, 1))}
+    iv = protocols.bootstrap_intervals(same, np.full(5, 4.0))
+    assert iv["mssd"] == pytest.approx([10 / 16, 10 / 16]) and iv["mspd"] == pytest.approx([1.0, 1.0])
+    assert iv["mssd_mspd"] == pytest.approx([(10 / 16 + 1) / 2] * 2) and "bop19" not in iv
+    # one unit all found (1 target), one unit nothing found (3 targets): AR in {0, 1/4 (both), 1}
+    c = {"mssd": np.array([[1.0], [0.0]]), "mspd": np.array([[1.0], [0.0]])}
+    a = protocols.bootstrap_intervals(c, np.array([1.0, 3.0]), resamples=4000)
+    assert a["mssd"] == [0.0, 1.0]  # both extremes are drawn (each with probability 1/4)
+    assert protocols.bootstrap_intervals(c, np.array([1.0, 3.0]), resamples=4000) == a
+    empty = {m: np.vstack([v, [[0.0]]]) for m, v in c.items()}  # a unit without targets
+    b = protocols.bootstrap_intervals(empty, np.array([1.0, 3.0, 0.0]), resamples=4000)
+    assert 0.0 <= b["mssd"][0] <= 0.25 <= b["mssd"][1] <= 1.0
+    assert protocols.bootstrap_intervals({"mssd": np.zeros((0, 3))}, np.zeros(0)) == {}
+    v = protocols.bootstrap_intervals({"vsd": np.ones((3, 2)), "mssd": np.ones((3, 2)), "mspd": np.zeros((3, 2))},
+                                      np.ones(3))
+    assert v["bop19"] == pytest.approx([2 / 3, 2 / 3])
+
+
+def test_evaluate_reports_intervals(dataset, evaluated):
+    """scores.json: a 95 % interval per BOP19 average recall, over images here (fewer than 10
+    scenes), that holds the point value."""
+    out, scores, _ = evaluated
+    ci = scores["bop19_ci"]
+    assert ci["unit"] == "image" and ci["units"] == scores["bop19"]["counts"]["target_images"]
+    assert ci["level"] == 0.95 and ci["resamples"] == protocols.CI_RESAMPLES
+    for k in ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
+              "bop19_average_recall_mspd", "bop19_average_recall_mssd_mspd"):
+        lo, hi = ci[k]
+        assert 0 <= lo <= scores[k] <= hi <= 1, (k, lo, scores[k], hi)
+    assert json.loads((out / "scores.json").read_text())["bop19_ci"] == ci

@@ -135,6 +135,35 @@ def _matched_counts(pairs: pd.DataFrame, col: str, thresholds: np.ndarray, group
     return counts
 
 
+CI_LEVEL = 0.95
+CI_RESAMPLES = 2000
+CI_MIN_SCENES = 10  # intervals resample scenes when there are at least this many, else images
+
+
+def bootstrap_intervals(unit_counts: dict[str, np.ndarray], unit_targets: np.ndarray, *,
+                        resamples: int = CI_RESAMPLES, level: float = CI_LEVEL, seed: int = 0) -> dict[str, list]:
+    """Percentile bootstrap intervals of average recalls, resampling units (scenes or images) with
+    replacement: ``unit_counts`` {metric: (U, M) matched GT counts of each unit at each of the
+    metric's M thresholds (x taus)}, ``unit_targets`` (U,) each unit's number of targets. A
+    resample's recall at a threshold is its units' matched counts over their targets; its AR the
+    mean over the M columns. Returns {metric: [low, high]} at ``level`` (seeded: reproducible),
+    plus ``mssd_mspd`` (and ``bop19`` with ``vsd``) for the means of the metrics' ARs."""
+    n = np.asarray(unit_targets, dtype=np.float64)
+    U = len(n)
+    if U == 0 or not n.sum():
+        return {}
+    rng = np.random.default_rng(seed)
+    W = rng.multinomial(U, np.full(U, 1.0 / U), size=resamples).astype(np.float64)  # (B, U) times drawn
+    tot = np.maximum(W @ n, 1e-12)
+    ar = {m: (W @ np.asarray(c, dtype=np.float64).reshape(U, -1)).mean(1) / tot for m, c in unit_counts.items()}
+    if "mssd" in ar and "mspd" in ar:
+        ar["mssd_mspd"] = (ar["mssd"] + ar["mspd"]) / 2
+        if "vsd" in ar:
+            ar["bop19"] = (ar["vsd"] + ar["mssd"] + ar["mspd"]) / 3
+    q = [(1 - level) / 2 * 100, (1 + level) / 2 * 100]
+    return {m: [float(v) for v in np.percentile(a, q)] for m, a in ar.items()}
+
+
 def bop19_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, errors: pd.DataFrame,
                  diameters: dict[int, float], im_widths: dict[int, float], *, with_vsd: bool,
                  vsd_taus=BOP19_VSD_TAUS) -> dict:
@@ -182,18 +211,21 @@ def bop19_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, err
     curves: dict = {}
     ar: dict = {}
     ar_obj: dict = {}
+    group_counts: dict = {}
     for metric, col in (("mssd", "mssd_n"), ("mspd", "mspd_n")):
         th = BOP19_THRESHOLDS[metric]
-        r, po = recalls(_matched_counts(pairs, col, th, groups))
+        group_counts[metric] = _matched_counts(pairs, col, th, groups)
+        r, po = recalls(group_counts[metric])
         curves[metric] = {"thresholds": th.tolist(), "recall": r.tolist()}
         ar[metric] = float(r.mean())
         ar_obj[metric] = {o: float(v.mean()) for o, v in po.items()}
         out["counts"][f"tp_{metric}"] = [int(round(x * total)) for x in r]
     if with_vsd:
         th = BOP19_THRESHOLDS["vsd"]
-        rs, pos = [], {o: [] for o in obj_ids}
+        rs, pos, per_tau = [], {o: [] for o in obj_ids}, []
         for tau in vsd_taus:
-            r, po = recalls(_matched_counts(pairs, vsd_column(tau), th, groups))
+            per_tau.append(_matched_counts(pairs, vsd_column(tau), th, groups))
+            r, po = recalls(per_tau[-1])
             rs.append(r)
             for o in obj_ids:
                 pos[o].append(po[o])
@@ -202,6 +234,7 @@ def bop19_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, err
                          "recall_mean_over_taus": R.mean(0).tolist()}
         ar["vsd"] = float(R.mean())
         ar_obj["vsd"] = {o: float(np.mean(v)) for o, v in pos.items()}
+        group_counts["vsd"] = np.concatenate(per_tau, axis=1)
     out["bop19_average_recall_mssd"] = ar["mssd"]
     out["bop19_average_recall_mspd"] = ar["mspd"]
     out["bop19_average_recall_vsd"] = ar.get("vsd")
@@ -210,7 +243,25 @@ def bop19_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, err
     out["per_object"] = {str(o): {f"bop19_average_recall_{m}": ar_obj[m][o] for m in ar_obj}
                          | {"targets": int(n_targets[obj_of_group == o].sum())} for o in obj_ids}
     out["curves"] = curves
+    out["ci"] = _intervals(groups, group_counts, n_targets)
     return out
+
+
+def _intervals(groups: pd.DataFrame, group_counts: dict, n_targets: np.ndarray) -> dict:
+    """Bootstrap intervals of the ARs (:func:`bootstrap_intervals`) over scenes (when there are at
+    least CI_MIN_SCENES) or images, with the unit and the number of units."""
+    scenes = groups["scene_id"].to_numpy()
+    unit = "scene" if len(np.unique(scenes)) >= CI_MIN_SCENES else "image"
+    keys = scenes if unit == "scene" else groups["scene_id"].to_numpy() * 10**9 + groups["im_id"].to_numpy()
+    _, u = np.unique(keys, return_inverse=True)
+    U = int(u.max()) + 1 if len(u) else 0
+    agg = {m: np.zeros((U, c.shape[1])) for m, c in group_counts.items()}
+    for m, c in group_counts.items():
+        np.add.at(agg[m], u, c)
+    targets = np.bincount(u, weights=n_targets, minlength=U)
+    iv = bootstrap_intervals(agg, targets)
+    return {"level": CI_LEVEL, "unit": unit, "units": U, "resamples": CI_RESAMPLES,
+            **{f"bop19_average_recall_{m}" if m != "bop19" else "bop19_average_recall": v for m, v in iv.items()}}
 
 
 # --------------------------------------------------------------------------------------------
