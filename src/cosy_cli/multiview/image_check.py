@@ -73,6 +73,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry.camera import project
+from ..lifetime import Closing
 
 MODES = ("auto", "none", "on")
 LEFTOVER_MAX_OFFSET = 1.0  # leftovers are clustered when their centres, carried across views, land this close
@@ -145,7 +146,7 @@ class CheckResult:
     s_kept: np.ndarray
 
 
-class ImageChecker:
+class ImageChecker(Closing):
     """Image check of refined poses (module docstring). db: ObjectDatabase of the labels to check;
     conf: ImageCheckConf. Renderers are made on first use; use as a context manager or close()."""
 
@@ -165,12 +166,6 @@ class ImageChecker:
     def close(self):
         self.verifier.close()
         self.refiner.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def check(self, items: list[ViewItem], images: dict, Ks: dict) -> CheckResult:
         """Check items of one group: images {im_id: (H, W, 3) uint8}, Ks {im_id: (3, 3)}. Views

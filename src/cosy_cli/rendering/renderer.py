@@ -49,6 +49,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..lifetime import Closing
 from .decimate import MAX_RENDER_FACES, render_copy
 from .platform import create_context, select_gl_platform
 from .pyrender_patch import patch_pyrender
@@ -371,7 +372,7 @@ class _Framebuffer:
         self.fbo, self.renderbuffers, self.size = None, [], (0, 0)
 
 
-class SceneRenderer:
+class SceneRenderer(Closing):
     """Renders posed instances of a fixed set of meshes (mm) with one headless OpenGL context.
 
     ``meshes``: obj_id -> trimesh.Trimesh (vertices in mm; vertex/face colours or a texture are
@@ -528,12 +529,6 @@ class SceneRenderer:
             self._meshes = {}
             self._closed = True
             self._release()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def __del__(self):
         try:

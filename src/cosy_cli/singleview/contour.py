@@ -62,6 +62,7 @@ import numpy as np
 from ..errors import CosyError
 from ..geometry.camera import crop_affine, crop_intrinsics
 from ..geometry.rotations import axis_angle_to_matrix
+from ..lifetime import Closing
 
 
 @dataclass
@@ -394,7 +395,7 @@ def gauss_newton(T: np.ndarray, Kc: np.ndarray, b: np.ndarray, Xo: np.ndarray, t
     return T, npts, np.where(active, inliers, 0)
 
 
-class ContourRefiner:
+class ContourRefiner(Closing):
     """Contour alignment of poses (see the module docstring); one headless renderer of the
     objects' decimated copies at ``conf.crop`` px. Use as a context manager or call close().
 
@@ -419,12 +420,6 @@ class ContourRefiner:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def align(self, rgb: np.ndarray, K: np.ndarray, boxes: np.ndarray, obj_ids: np.ndarray, T: np.ndarray,
               det: np.ndarray | None = None):

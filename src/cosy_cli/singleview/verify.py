@@ -72,6 +72,7 @@ import numpy as np
 
 from ..geometry.camera import crop_affine, crop_intrinsics
 from ..geometry.rotations import axis_angle_to_matrix
+from ..lifetime import Closing
 
 
 @dataclass
@@ -240,7 +241,7 @@ class RankedHypotheses:
 
 
 
-class Verifier:
+class Verifier(Closing):
     """Scores and refines hypotheses by rendering; one headless renderer over decimated meshes.
 
     db: ObjectDatabase; conf: VerifyConf. Use as a context manager or call close()."""
@@ -279,12 +280,6 @@ class Verifier:
         for r in self._renderers.values():
             r.close()
         self._renderers = {}
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     # ------------------------------------------------------------------ scoring
 

@@ -51,6 +51,7 @@ import numpy as np
 from ..geometry.camera import crop_intrinsics, fit_box_to_aspect, project
 from ..geometry.poses import look_at, make_pose, transform_points
 from ..geometry.rotations import axis_angle_to_matrix, random_rotations, rotation_about_axis
+from ..lifetime import Closing
 from ..objects.database import diameter_of
 
 from ..singleview.crops import (  # one definition: train and test agree
@@ -121,7 +122,7 @@ def _default_camera():
 # ---------------------------------------------------------------------- shared randomisation
 # Used by SampleGenerator here and by cosy_cli.detection.data.DetectionSampleGenerator.
 
-class RendererOwner:
+class RendererOwner(Closing):
     """Base of the generators that own an OpenGL renderer: built on first use by
     ``_make_renderer()`` (so that generators can be made inside worker processes), freed by
     :meth:`close`; pickling is refused (``_pickle_instead`` says what to pickle)."""

@@ -35,6 +35,7 @@ from ..errors import CosyError
 from ..geometry.poses import invert
 from ..io import atomic, bop
 from ..io.dataset import BopDataset
+from ..lifetime import Closing
 from ..pipeline.layout import MANIFEST, RUN_FORMAT, scene_dir
 
 MAX_PNG_BYTES = 1_500_000
@@ -304,7 +305,7 @@ def _load_group(run_dir: Path, scene_id: int, group_id: int, dataset: BopDataset
 # rendering
 # --------------------------------------------------------------------------------------------
 
-class MeshRenderer:
+class MeshRenderer(Closing):
     """A :class:`~cosy_cli.rendering.SceneRenderer` that loads a dataset's meshes on demand.
     Use as a context manager (or call :meth:`close`)."""
 
@@ -335,12 +336,6 @@ class MeshRenderer:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 @dataclass
