@@ -362,3 +362,60 @@ def test_agnostic_nms_keeps_the_better_label_of_one_object(tmp_path):
     a, b = bop.read_detections(tmp_path / "a.json"), bop.read_detections(tmp_path / "b.json")
     assert sorted(a[a["im_id"] == 0]["obj_id"]) == [3, 6, 7]
     assert sorted(b[b["im_id"] == 0]["obj_id"]) == [3, 7]
+
+
+def test_ap_from_matches_is_cocos_and_intervals_hold_it(ds, gt_dets):
+    """Noisy detections (shifted, relabelled, dropped, false positives, random scores): our AP from
+    COCOeval's per-image matches equals pycocotools' per-object AP50 exactly, and every interval
+    holds its point value; perfect detections give a zero-width interval at 1."""
+    rng = np.random.default_rng(7)
+    d = pd.concat([gt_dets, gt_dets.sample(frac=0.5, random_state=1)], ignore_index=True)
+    d["x"] += rng.normal(0, 0.15, len(d)) * d["w"]
+    d["y"] += rng.normal(0, 0.15, len(d)) * d["h"]
+    flip = rng.random(len(d)) < 0.15
+    d.loc[flip, "obj_id"] = rng.choice(d["obj_id"].unique(), int(flip.sum()))
+    d["score"] = rng.random(len(d))
+    d = d.drop(d.index[rng.random(len(d)) < 0.2])
+    s = detection_ap.coco_ap(d, ds, [1])
+    assert s["AP50_ci"]["unit"] == "image" and s["AP50_ci"]["units"] == 8
+    lo, hi = s["AP50_ci"]["AP50"]
+    assert lo <= s["AP50"] <= hi and hi - lo > 0.02
+    for o, v in s["per_object"].items():
+        if v["gt"]:
+            assert v["AP50_ci"][0] <= v["AP50"] <= v["AP50_ci"][1], (o, v)
+
+    # the same AP from the per-image matches, without weights: pycocotools' number to 1e-12
+    import contextlib
+    import io
+
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    gt = detection_ap._gt_boxes(ds, [1])
+    img = detection_ap._image_index(ds, [1])
+    with contextlib.redirect_stdout(io.StringIO()):
+        coco_gt = COCO()
+        coco_gt.dataset = {"images": [{"id": n} for n in img.values()],
+                           "categories": [{"id": int(o)} for o in sorted(set(gt.obj_id) | set(d.obj_id))],
+                           "annotations": [{"id": n + 1, "image_id": img[(r.scene_id, r.im_id)], "category_id": r.obj_id,
+                                            "bbox": [r.x, r.y, r.w, r.h], "area": r.w * r.h, "iscrowd": 0}
+                                           for n, r in enumerate(gt.itertuples())]}
+        coco_gt.createIndex()
+        E = COCOeval(coco_gt, coco_gt.loadRes([{"image_id": img[(r.scene_id, r.im_id)], "category_id": int(r.obj_id),
+                                                "bbox": [r.x, r.y, r.w, r.h], "score": r.score}
+                                               for r in d.itertuples()]), "bbox")
+        E.evaluate()
+        E.accumulate()
+    I0, A0 = len(E.params.imgIds), len(E.params.areaRng)
+    for k, cat in enumerate(E.params.catIds):
+        ev = [e for e in E.evalImgs[k * A0 * I0:(k * A0 + 1) * I0] if e is not None]
+        sc = np.concatenate([e["dtScores"][:100] for e in ev])
+        m = np.concatenate([e["dtMatches"][0, :100] for e in ev])
+        ig = np.concatenate([e["dtIgnore"][0, :100] for e in ev]).astype(bool)
+        o = np.argsort(-sc, kind="mergesort")
+        n_gt = sum(int((np.asarray(e["gtIgnore"]) == 0).sum()) for e in ev)
+        ours = detection_ap.ap_from_matches(sc[o], (m[o] > 0) & ~ig[o], (m[o] == 0) & ~ig[o], n_gt)
+        p = E.eval["precision"][0, :, k, 0, -1]
+        assert ours == pytest.approx(p.mean() if (p > -1).any() else -1.0, abs=1e-12), cat
+    perfect = detection_ap.coco_ap(gt_dets, ds, [1])
+    assert perfect["AP50_ci"]["AP50"] == pytest.approx([1.0, 1.0])

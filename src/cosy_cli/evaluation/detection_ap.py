@@ -100,7 +100,7 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
     out = {"AP": 0.0, "AP50": 0.0, "AP75": 0.0, "AR100": 0.0, "per_object": {}, "images": len(img),
            "gt": int((~crowd).sum()), "gt_ignored": int(crowd.sum()), "detections": len(res),
            "min_visib_fract": float(min_visib_fract), "tool": f"pycocotools {version('pycocotools')}"}
-    per_ap = per_ap50 = {}
+    per_ap = per_ap50 = per_ci = {}
     if res and (~crowd).any():
         with contextlib.redirect_stdout(io.StringIO()):
             coco_gt = COCO()
@@ -123,14 +123,94 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
 
         per_ap = {int(c): mean_valid(prec[:, :, k, 0, -1]) for k, c in enumerate(E.params.catIds)}
         per_ap50 = {int(c): mean_valid(prec[iou50, :, k, 0, -1]) for k, c in enumerate(E.params.catIds)}
+        scene_of = {n: s for (s, _), n in img.items()}
+        by_scene = len(set(scene_of.values())) >= CI_MIN_SCENES
+        unit_key = {n: (scene_of[n] if by_scene else n) for n in img.values()}
+        ci = ap50_intervals(E, iou50, unit_key)
+        out["AP50_ci"] = {"level": CI_LEVEL, "unit": "scene" if by_scene else "image",
+                          "units": len(set(unit_key.values())), "resamples": CI_RESAMPLES, "AP50": ci.pop("mean", None)}
+        per_ci = ci
     for o in obj_ids:
         g = int(n_gt.get(o, 0))
         out["per_object"][str(o)] = {
             "AP": per_ap.get(o) if g else None, "AP50": per_ap50.get(o) if g else None,
-            "gt": g, "detections": int(n_det.get(o, 0))}
+            "AP50_ci": per_ci.get(o) if g else None, "gt": g, "detections": int(n_det.get(o, 0))}
         if g and not res:
             out["per_object"][str(o)].update(AP=0.0, AP50=0.0)
     return out
+
+
+CI_LEVEL = 0.95
+CI_RESAMPLES = 1000
+CI_MIN_SCENES = 10  # intervals resample scenes when there are at least this many, else images
+
+
+def ap_from_matches(scores: np.ndarray, tp: np.ndarray, fp: np.ndarray, n_gt: float, weights: np.ndarray | None = None,
+                    rec_thrs: np.ndarray = np.linspace(0.0, 1.0, 101)) -> float:
+    """COCO's interpolated AP of one category at one IoU threshold (``COCOeval.accumulate``):
+    detections already in descending score order (mergesort, as COCO), ``tp`` / ``fp`` flags (a
+    detection on an ignored region is neither), ``n_gt`` the non-ignored GT boxes; ``weights``
+    repeat detections (a bootstrap resample: each image's detections counted as often as the
+    image is drawn). Precision made non-increasing in recall, read at the 101 recall thresholds
+    (0 beyond the last recall), averaged. -1 when there is no GT."""
+    if n_gt <= 0:
+        return -1.0
+    w = np.ones(len(tp)) if weights is None else np.asarray(weights, dtype=np.float64)
+    tps = np.cumsum(tp * w)
+    fps = np.cumsum(fp * w)
+    rc = tps / n_gt
+    pr = tps / (tps + fps + np.spacing(1))
+    drawn = w > 0  # detections of images not drawn are not there at all
+    rc, pr = rc[drawn], pr[drawn]
+    if not len(rc):
+        return 0.0
+    pr = np.maximum.accumulate(pr[::-1])[::-1]
+    idx = np.searchsorted(rc, rec_thrs, side="left")
+    q = np.where(idx < len(pr), pr[np.minimum(idx, len(pr) - 1)], 0.0)
+    return float(q.mean())
+
+
+def ap50_intervals(E, iou_index: int, unit_of_image: dict, *, resamples: int = CI_RESAMPLES, level: float = CI_LEVEL,
+                   seed: int = 0) -> dict:
+    """Percentile bootstrap intervals of each category's AP50 and of their mean, resampling units
+    (images, or scenes: ``unit_of_image`` COCO image id -> unit) with replacement, from an
+    evaluated and accumulated ``COCOeval`` ``E`` (its per-image matches at IoU index
+    ``iou_index``, area "all", the last maxDets). Returns {category id: [low, high], "mean": [low,
+    high]} (categories without GT left out); seeded: reproducible."""
+    p = E.params
+    I0, A0 = len(p.imgIds), len(p.areaRng)
+    max_det = p.maxDets[-1]
+    units = sorted(set(unit_of_image.values()))
+    u_index = {u: n for n, u in enumerate(units)}
+    rng = np.random.default_rng(seed)
+    W = rng.multinomial(len(units), np.full(len(units), 1.0 / len(units)), size=resamples).astype(np.float64)
+    q = [(1 - level) / 2 * 100, (1 + level) / 2 * 100]
+    per_cat, aps = {}, []
+    for k, cat in enumerate(p.catIds):
+        ev = [(E.evalImgs[k * A0 * I0 + i], u_index[unit_of_image[img_id]]) for i, img_id in enumerate(p.imgIds)]
+        ev = [(e, u) for e, u in ev if e is not None]
+        if not ev:
+            continue
+        n_gt_unit = np.zeros(len(units))
+        for e, u in ev:
+            n_gt_unit[u] += np.count_nonzero(np.asarray(e["gtIgnore"]) == 0)
+        if n_gt_unit.sum() == 0:
+            continue
+        sc = np.concatenate([np.asarray(e["dtScores"][:max_det], dtype=np.float64) for e, _ in ev])
+        dtm = np.concatenate([np.asarray(e["dtMatches"][iou_index, :max_det]) for e, _ in ev])
+        dig = np.concatenate([np.asarray(e["dtIgnore"][iou_index, :max_det]) for e, _ in ev]).astype(bool)
+        du = np.concatenate([np.full(len(e["dtScores"][:max_det]), u) for e, u in ev]).astype(np.int64)
+        order = np.argsort(-sc, kind="mergesort")
+        tp = (dtm[order] > 0) & ~dig[order]
+        fp = (dtm[order] == 0) & ~dig[order]
+        du = du[order]
+        a = np.array([ap_from_matches(sc[order], tp, fp, float(W[b] @ n_gt_unit), W[b, du]) for b in range(resamples)])
+        per_cat[int(cat)] = [float(v) for v in np.percentile(a, q)]
+        aps.append(a)
+    if aps:  # COCO's mean over the categories with GT (in that resample)
+        A = np.stack(aps)
+        per_cat["mean"] = [float(v) for v in np.percentile(np.nanmean(np.where(A < 0, np.nan, A), axis=0), q)]
+    return per_cat
 
 
 def confusion_matrix(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract: float = 0.1,
@@ -211,19 +291,26 @@ def main(dataset: str | Path, split: str, detections: str | Path, out: str | Pat
 
 def format_scores(scores: dict) -> str:
     """A few lines for the terminal: AP, AP50, AP75, per-object AP50 and the label mistakes."""
-    lines = [f"AP {scores['AP']:.3f}  AP50 {scores['AP50']:.3f}  AP75 {scores['AP75']:.3f}  AR100 "
+    ci = scores.get("AP50_ci") or {}
+    iv = f" ({ci['AP50'][0]:.3f}-{ci['AP50'][1]:.3f})" if ci.get("AP50") else ""
+    lines = [f"AP {scores['AP']:.3f}  AP50 {scores['AP50']:.3f}{iv}  AP75 {scores['AP75']:.3f}  AR100 "
              f"{scores['AR100']:.3f}  ({scores['images']} images, {scores['gt']} GT boxes + {scores['gt_ignored']} "
              f"ignored (visib < {scores['min_visib_fract']:g}), {scores['detections']} detections; {scores['tool']})"]
+    if ci:
+        lines.append(f"(AP50 intervals: {ci['level']:.0%}, bootstrap over {ci['units']} {ci['unit']}s)")
     per = scores["per_object"]
     conf = scores.get("confusion", {})
-    lines.append(f"{'obj_id':>7s} {'GT':>5s} {'dets':>5s} {'AP50':>6s} {'AP':>6s}  label mistakes (GT -> detected as)")
+    lines.append(f"{'obj_id':>7s} {'GT':>5s} {'dets':>5s} {'AP50':>6s} {'interval':>11s} {'AP':>6s}  label mistakes "
+                 "(GT -> detected as)")
     for o, v in per.items():
         if not v["gt"] and not v["detections"]:
             continue
         c = conf.get(o, {})
         wrong = ", ".join(f"{lab} x{n}" for lab, n in c.get("confused_with", {}).items()) or "-"
         missed = f"; missed {c['missed']}" if c.get("missed") else ""
-        lines.append(f"{o:>7s} {v['gt']:5d} {v['detections']:5d} {_ap(v['AP50'])} {_ap(v['AP'])}  {wrong}{missed}")
+        i = v.get("AP50_ci")
+        lines.append(f"{o:>7s} {v['gt']:5d} {v['detections']:5d} {_ap(v['AP50'])} "
+                     f"{f'{i[0]:.2f}-{i[1]:.2f}' if i else '-':>11s} {_ap(v['AP'])}  {wrong}{missed}")
     return "\n".join(lines)
 
 
