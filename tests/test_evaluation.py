@@ -542,6 +542,21 @@ def test_bad_inputs_cli(dataset, tmp_path):
     assert r.exit_code == 0 and "skipping" in r.output
     r = run(text, ["--vsd-delta", "5"])  # other settings: refused without --overwrite
     assert r.exit_code == 2 and "--overwrite" in r.output
+    r = run(text, ["--scene-id", "7", "--overwrite"])  # a scene the split does not have
+    assert r.exit_code == 2 and "scene(s) [7] not in the split" in r.output
+
+
+def test_scene_id_restricts_the_evaluation(dataset, evaluated, tmp_path):
+    """``--scene-id``: only that scene's targets count (the other scene's predictions are ignored)."""
+    _, full, _ = evaluated
+    r = CliRunner().invoke(cli, ["evaluate", "--dataset", str(dataset), "--predictions", str(dataset / "pred.csv"),
+                                 "--out", str(tmp_path / "one"), "--metrics", "bop19", "--no-vsd", "--scene-id", "1"])
+    assert r.exit_code == 0, r.output
+    one = json.loads((tmp_path / "one" / "scores.json").read_text())
+    assert one["inputs"]["scene_ids"] == [1]
+    tgt = json.loads((dataset / "test_targets_bop19.json").read_text())
+    assert one["counts"]["targets"] == sum(t["inst_count"] for t in tgt if t["scene_id"] == 1) \
+        < full["counts"]["targets"]
 
 
 def test_speed_1000_estimates(dataset, tmp_path):

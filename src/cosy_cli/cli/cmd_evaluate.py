@@ -21,6 +21,8 @@ from .common import dataset_options, user_errors
 @click.option("--metrics", default="bop19,auc", show_default=True,
               help="Comma-separated protocols: bop19 (VSD, MSSD, MSPD average recalls), auc (CosyPose/PoseCNN AUC of "
                    "ADD-S, ADD(-S), top-1), vivo (CosyPose T-LESS ViVo: AUC of ADD-S, ADD-S<0.1d, mAP@ADD-S<0.1d).")
+@click.option("--scene-id", "scene_ids", type=int, multiple=True,
+              help="Only these scenes (repeatable): their GT and targets; other scenes' predictions are ignored [all].")
 @click.option("--scene-json", type=click.Path(path_type=Path), default=None,
               help="scene.json of cosy refine: adds relative camera pose errors and the fraction of views placed.")
 @click.option("--models-dir", default="models_eval", show_default=True,
@@ -30,15 +32,15 @@ from .common import dataset_options, user_errors
 @click.option("--no-vsd", is_flag=True, help="Skip VSD (no rendering): BOP19 reports MSSD and MSPD only.")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
-def evaluate(dataset: Path, split: str, predictions: Path, out: Path, targets, metrics: str, scene_json, models_dir: str,
-             vsd_delta, no_vsd: bool, overwrite: bool) -> None:
+def evaluate(dataset: Path, split: str, predictions: Path, out: Path, targets, metrics: str, scene_ids, scene_json,
+             models_dir: str, vsd_delta, no_vsd: bool, overwrite: bool) -> None:
     """Evaluate pose predictions: BOP19 (VSD, MSSD, MSPD) and CosyPose AUC (ADD-S, ADD(-S)). Lengths in mm."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from ..evaluation import evaluate_stage
 
     conf = evaluate_stage.resolve_conf("bop19", vsd_delta=vsd_delta, vsd=False if no_vsd else None)
     evaluate_stage.main(conf, dataset, split, predictions, out, overwrite=overwrite, targets=targets, metrics=metrics,
-                        scene_json=scene_json, models_dir=models_dir, log=click.echo)
+                        scene_json=scene_json, models_dir=models_dir, scene_ids=list(scene_ids) or None, log=click.echo)
 
 
 COMMANDS = [evaluate]

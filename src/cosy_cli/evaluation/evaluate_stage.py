@@ -374,6 +374,8 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
     from ..objects import continuous_steps_for_max_step
 
     ds = BopDataset(dataset, split)
+    if scene_ids is not None:
+        ds.select_scenes(scene_ids)  # CosyError for a scene the split does not have
     db, models_path = load_models(ds, models_dir, warn)
     manifest.verify(predictions)  # written by cosy refine / estimate: refused if changed since
     if scene_json is not None:
