@@ -26,6 +26,7 @@ import pandas as pd
 from ..errors import CosyError
 from ..io.atomic import atomic_path, write_json
 from ..io.dataset import BopDataset
+from .protocols import CI_LEVEL, bootstrap_weights, percentile_interval, resampling_units
 
 MISSED = "missed"
 
@@ -123,12 +124,11 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
 
         per_ap = {int(c): mean_valid(prec[:, :, k, 0, -1]) for k, c in enumerate(E.params.catIds)}
         per_ap50 = {int(c): mean_valid(prec[iou50, :, k, 0, -1]) for k, c in enumerate(E.params.catIds)}
-        scene_of = {n: s for (s, _), n in img.items()}
-        by_scene = len(set(scene_of.values())) >= CI_MIN_SCENES
-        unit_key = {n: (scene_of[n] if by_scene else n) for n in img.values()}
-        ci = ap50_intervals(E, iou50, unit_key)
-        out["AP50_ci"] = {"level": CI_LEVEL, "unit": "scene" if by_scene else "image",
-                          "units": len(set(unit_key.values())), "resamples": CI_RESAMPLES, "AP50": ci.pop("mean", None)}
+        keys = list(img)  # (scene_id, im_id) in COCO image id order
+        unit, u, U = resampling_units([k[0] for k in keys], [k[1] for k in keys])
+        ci = ap50_intervals(E, iou50, {img[k]: int(x) for k, x in zip(keys, u)})
+        out["AP50_ci"] = {"level": CI_LEVEL, "unit": unit, "units": U, "resamples": CI_RESAMPLES,
+                          "AP50": ci.pop("mean", None)}
         per_ci = ci
     for o in obj_ids:
         g = int(n_gt.get(o, 0))
@@ -140,9 +140,7 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
     return out
 
 
-CI_LEVEL = 0.95
-CI_RESAMPLES = 1000
-CI_MIN_SCENES = 10  # intervals resample scenes when there are at least this many, else images
+CI_RESAMPLES = 1000  # fewer than the pose ARs' 2000: each resample re-ranks every object's detections
 
 
 def ap_from_matches(scores: np.ndarray, tp: np.ndarray, fp: np.ndarray, n_gt: float, weights: np.ndarray | None = None,
@@ -182,9 +180,7 @@ def ap50_intervals(E, iou_index: int, unit_of_image: dict, *, resamples: int = C
     max_det = p.maxDets[-1]
     units = sorted(set(unit_of_image.values()))
     u_index = {u: n for n, u in enumerate(units)}
-    rng = np.random.default_rng(seed)
-    W = rng.multinomial(len(units), np.full(len(units), 1.0 / len(units)), size=resamples).astype(np.float64)
-    q = [(1 - level) / 2 * 100, (1 + level) / 2 * 100]
+    W = bootstrap_weights(len(units), resamples, seed)
     per_cat, aps = {}, []
     for k, cat in enumerate(p.catIds):
         ev = [(E.evalImgs[k * A0 * I0 + i], u_index[unit_of_image[img_id]]) for i, img_id in enumerate(p.imgIds)]
@@ -205,11 +201,11 @@ def ap50_intervals(E, iou_index: int, unit_of_image: dict, *, resamples: int = C
         fp = (dtm[order] == 0) & ~dig[order]
         du = du[order]
         a = np.array([ap_from_matches(sc[order], tp, fp, float(W[b] @ n_gt_unit), W[b, du]) for b in range(resamples)])
-        per_cat[int(cat)] = [float(v) for v in np.percentile(a, q)]
+        per_cat[int(cat)] = percentile_interval(a, level)
         aps.append(a)
     if aps:  # COCO's mean over the categories with GT (in that resample)
         A = np.stack(aps)
-        per_cat["mean"] = [float(v) for v in np.percentile(np.nanmean(np.where(A < 0, np.nan, A), axis=0), q)]
+        per_cat["mean"] = percentile_interval(np.nanmean(np.where(A < 0, np.nan, A), axis=0), level)
     return per_cat
 
 

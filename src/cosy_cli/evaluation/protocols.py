@@ -140,6 +140,32 @@ CI_RESAMPLES = 2000
 CI_MIN_SCENES = 10  # intervals resample scenes when there are at least this many, else images
 
 
+def resampling_units(scene_ids, im_ids) -> tuple[str, np.ndarray, int]:
+    """What a bootstrap resamples, for items (n,) of ``scene_ids`` / ``im_ids``: scenes when there
+    are at least CI_MIN_SCENES of them (images of one scene share objects and their arrangement),
+    else images. Returns (unit name, unit index (n,) in 0..U-1, U)."""
+    scene_ids, im_ids = np.asarray(scene_ids, dtype=np.int64), np.asarray(im_ids, dtype=np.int64)
+    by_scene = len(np.unique(scene_ids)) >= CI_MIN_SCENES
+    keys = np.stack([scene_ids, np.zeros_like(im_ids) if by_scene else im_ids], 1) if len(scene_ids) \
+        else np.zeros((0, 2), np.int64)
+    _, u = np.unique(keys, axis=0, return_inverse=True)
+    u = np.asarray(u).reshape(-1)
+    return ("scene" if by_scene else "image"), u, (int(u.max()) + 1 if len(u) else 0)
+
+
+def bootstrap_weights(n_units: int, resamples: int, seed: int = 0) -> np.ndarray:
+    """(resamples, n_units) how often each unit is drawn in each resample (n_units draws with
+    replacement; seeded: reproducible)."""
+    rng = np.random.default_rng(seed)
+    return rng.multinomial(n_units, np.full(n_units, 1.0 / n_units), size=resamples).astype(np.float64)
+
+
+def percentile_interval(values: np.ndarray, level: float = CI_LEVEL) -> list[float]:
+    """[low, high]: the central ``level`` percentile interval of bootstrap values (NaN ignored)."""
+    q = [(1 - level) / 2 * 100, (1 + level) / 2 * 100]
+    return [float(v) for v in np.nanpercentile(np.asarray(values, dtype=np.float64), q)]
+
+
 def bootstrap_intervals(unit_counts: dict[str, np.ndarray], unit_targets: np.ndarray, *,
                         resamples: int = CI_RESAMPLES, level: float = CI_LEVEL, seed: int = 0) -> dict[str, list]:
     """Percentile bootstrap intervals of average recalls, resampling units (scenes or images) with
@@ -152,16 +178,14 @@ def bootstrap_intervals(unit_counts: dict[str, np.ndarray], unit_targets: np.nda
     U = len(n)
     if U == 0 or not n.sum():
         return {}
-    rng = np.random.default_rng(seed)
-    W = rng.multinomial(U, np.full(U, 1.0 / U), size=resamples).astype(np.float64)  # (B, U) times drawn
+    W = bootstrap_weights(U, resamples, seed)  # (B, U) times drawn
     tot = np.maximum(W @ n, 1e-12)
     ar = {m: (W @ np.asarray(c, dtype=np.float64).reshape(U, -1)).mean(1) / tot for m, c in unit_counts.items()}
     if "mssd" in ar and "mspd" in ar:
         ar["mssd_mspd"] = (ar["mssd"] + ar["mspd"]) / 2
         if "vsd" in ar:
             ar["bop19"] = (ar["vsd"] + ar["mssd"] + ar["mspd"]) / 3
-    q = [(1 - level) / 2 * 100, (1 + level) / 2 * 100]
-    return {m: [float(v) for v in np.percentile(a, q)] for m, a in ar.items()}
+    return {m: percentile_interval(a, level) for m, a in ar.items()}
 
 
 def bop19_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, errors: pd.DataFrame,
@@ -250,11 +274,7 @@ def bop19_scores(gt: pd.DataFrame, targets: pd.DataFrame, est: pd.DataFrame, err
 def _intervals(groups: pd.DataFrame, group_counts: dict, n_targets: np.ndarray) -> dict:
     """Bootstrap intervals of the ARs (:func:`bootstrap_intervals`) over scenes (when there are at
     least CI_MIN_SCENES) or images, with the unit and the number of units."""
-    scenes = groups["scene_id"].to_numpy()
-    unit = "scene" if len(np.unique(scenes)) >= CI_MIN_SCENES else "image"
-    keys = scenes if unit == "scene" else groups["scene_id"].to_numpy() * 10**9 + groups["im_id"].to_numpy()
-    _, u = np.unique(keys, return_inverse=True)
-    U = int(u.max()) + 1 if len(u) else 0
+    unit, u, U = resampling_units(groups["scene_id"].to_numpy(), groups["im_id"].to_numpy())
     agg = {m: np.zeros((U, c.shape[1])) for m, c in group_counts.items()}
     for m, c in group_counts.items():
         np.add.at(agg[m], u, c)
