@@ -68,6 +68,11 @@ def test_from_gt_runs_every_stage_and_the_second_run_skips(tmp_path, templates_d
     mv, sv = m["metrics"]["multi_view"], m["metrics"]["single_view"]
     # scene 1 alone, scored on scene 1 only: multi-view beats single-view
     assert mv["recall_adds_0.1d"] >= sv["recall_adds_0.1d"] and mv["recall_adds_0.1d"] > 0.9
+    # the summary gives the headline AR's bootstrap interval (over images: one scene)
+    lo, hi = mv["bop19_ci"]["bop19_average_recall_mssd_mspd"]
+    assert mv["bop19_ci"]["unit"] == "image" and lo <= mv["bop19_average_recall_mssd_mspd"] <= hi
+    text = "\n".join(run_stage.summary_lines(m, run))
+    assert f"{lo:.3f}-{hi:.3f}" in text and "95 % interval (images)" in text
     assert all(st["status"] == "done" for st in m["stages"].values())
     before = _records(run)
     m2 = run_stage.main("fast", DATA, "test", run, scene_ids=[1], from_gt=True, templates_dir=templates_dir,

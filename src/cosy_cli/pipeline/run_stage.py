@@ -455,7 +455,9 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     manifest["stages"] = {**manifest["stages"], **stage_times}
     manifest["merged"] = merged
     manifest["single_view"] = single
-    manifest["metrics"] = {name: {k: s.get(k) for k in SUMMARY_METRICS if k in s} for name, s in evals.items()}
+    manifest["metrics"] = {name: {**{k: s.get(k) for k in SUMMARY_METRICS if k in s},
+                                  **({"bop19_ci": s["bop19_ci"]} if s.get("bop19_ci") else {})}
+                           for name, s in evals.items()}
     manifest["status"] = "done"
     manifest["time_s"] = round(time.perf_counter() - t_start, 3)
     atomic.write_json(manifest_path, manifest)
@@ -484,6 +486,11 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
             vals = [m[n].get(k) for n in names]
             if any(v is not None for v in vals):
                 lines.append(f"{k:<32}" + "".join(f"{v:>13.3f}" if v is not None else f"{'-':>13}" for v in vals))
+                cis = [(m[n].get("bop19_ci") or {}) for n in names]
+                if k in ("bop19_average_recall", "bop19_average_recall_mssd_mspd") and any(c.get(k) for c in cis):
+                    unit = next(c["unit"] for c in cis if c.get(k))
+                    lines.append(f"{'  95 % interval (' + unit + 's)':<32}" + "".join(
+                        f"{f'{c[k][0]:.3f}-{c[k][1]:.3f}' if c.get(k) else '-':>13}" for c in cis))
     sv = manifest.get("single_view") or {}
     if sv.get("groups"):
         lines += ["", f"single view: {sv['groups']} of {sv['groups_total']} group(s) had one view "
