@@ -39,6 +39,7 @@ import numpy as np
 
 from ..conf import merge_conf
 from ..errors import CosyError
+from ..objects.database import diameter_of
 from ..training import loop
 from .classifier import ClassifierConfig, crop_boxes
 
@@ -137,42 +138,21 @@ def _background_boxes(rng, boxes: np.ndarray, n: int, w: int, h: int) -> np.ndar
 
 
 # ---------------------------------------------------------------------------------- soft targets
-def lookalike_fits(meshes: dict, rel: float | None = None, n_query: int = 500, n_target: int = 10000) -> list:
+def lookalike_fits(meshes: dict, rel: float | None = None) -> list:
     """[:class:`~cosy_cli.multiview.label_groups.PairFit`] of the pairs of ``meshes`` ({obj_id:
-    trimesh, mm}) that look alike: sorted extents and diameters within 10 %, then the chamfer fit
+    trimesh, mm}) that look alike: sorted extents and box diagonals within 10 %, then the chamfer fit
     (identity, else ICP from the principal axes) at most ``rel`` (default 2 %) of the larger
-    diameter, as ``cosy match``'s automatic label groups."""
+    diameter, as ``cosy match``'s automatic label groups (:func:`~cosy_cli.multiview.label_groups.fit_pairs`)."""
     from ..multiview import label_groups as lg
-    from ..multiview.match_stage import sample_surface
-    from ..geometry.sampling import farthest_point_subset
 
     rel = lg.AUTO_REL if rel is None else float(rel)
-    ids = sorted(int(o) for o in meshes)
-    V = {o: np.asarray(meshes[o].vertices, np.float64) for o in ids}
-    F = {o: np.asarray(meshes[o].faces, np.int64) for o in ids}
-    ext = {o: np.sort(np.ptp(V[o], axis=0)) for o in ids}
-    diam = {o: float(np.linalg.norm(ext[o])) for o in ids}  # the box diagonal: a prefilter only
-    samples, out = {}, []
-    for i, a in enumerate(ids):
-        for b in ids[i + 1:]:
-            if abs(diam[a] - diam[b]) > lg.PREFILTER_REL * max(diam[a], diam[b]) or \
-                    np.any(np.abs(ext[a] - ext[b]) > lg.PREFILTER_REL * np.maximum(ext[a], ext[b])):
-                continue
-            for o in (a, b):
-                if o not in samples:
-                    q = farthest_point_subset(sample_surface(V[o], F[o], 2 * n_query, seed=2), n_query)
-                    samples[o] = (q, sample_surface(V[o], F[o], n_target, seed=1))
-            d = max(_diameter(V[a]), _diameter(V[b]))
-            fit = lg.fit_models(a, b, samples[a], samples[b], d, rel)
-            if fit.rel <= rel:
-                out.append(fit)
-    return out
-
-
-def _diameter(V: np.ndarray) -> float:
-    from ..objects.database import diameter_of
-
-    return diameter_of(V)
+    V = {int(o): np.asarray(m.vertices, np.float64) for o, m in meshes.items()}
+    F = {int(o): np.asarray(m.faces, np.int64) for o, m in meshes.items()}
+    ext = {o: np.sort(np.ptp(v, axis=0)) for o, v in V.items()}
+    box = {o: float(np.linalg.norm(e)) for o, e in ext.items()}  # the box diagonal: a prefilter only
+    fits = lg.fit_pairs(V, ext, box, lambda o: lg.surface_samples(V[o], F[o]),
+                        lambda a, b: max(diameter_of(V[a]), diameter_of(V[b])), rel)
+    return [f for f in fits if f.rel <= rel]
 
 
 def distinguishing_points(mesh_a, mesh_b, T_a_b: np.ndarray, tol_mm: float, n: int = 100_000,
@@ -186,7 +166,7 @@ def distinguishing_points(mesh_a, mesh_b, T_a_b: np.ndarray, tol_mm: float, n: i
     spacing too large, ~0.3 mm for 100 k samples on a 100 mm object). Identical models: none."""
     from scipy.spatial import cKDTree
 
-    from ..multiview.match_stage import sample_surface
+    from ..geometry.sampling import sample_surface
 
     T = np.asarray(T_a_b, np.float64)
     Sa = sample_surface(np.asarray(mesh_a.vertices, np.float64), np.asarray(mesh_a.faces, np.int64), n, seed=seed)
@@ -210,8 +190,8 @@ def lookalike_probes(meshes: dict, obj_ids, tol_mm: float = 2.0, rel_tol: float 
         a, b = int(f.a), int(f.b)
         if a not in known or b not in known:
             continue
-        diam = max(_diameter(np.asarray(meshes[a].vertices, np.float64)),
-                   _diameter(np.asarray(meshes[b].vertices, np.float64)))
+        diam = max(diameter_of(np.asarray(meshes[a].vertices, np.float64)),
+                   diameter_of(np.asarray(meshes[b].vertices, np.float64)))
         tol = max(float(tol_mm), rel_tol * diam)
         pa, pb = distinguishing_points(meshes[a], meshes[b], f.T_a_b, tol, n=n)
         if len(pa) + len(pb) == 0:

@@ -1,4 +1,4 @@
-"""Point subsets: farthest-point sampling (numpy)."""
+"""Point sets: area-uniform samples of a triangle mesh, farthest-point subsets (numpy)."""
 
 from __future__ import annotations
 
@@ -25,3 +25,21 @@ def farthest_point_subset(X: np.ndarray, k: int) -> np.ndarray:
     if len(X) <= k:
         return X.copy()
     return X[farthest_point_indices(X, k)]
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray | None, n: int, seed: int = 0) -> np.ndarray:
+    """n area-uniform points (mm) on the triangles (deterministic); the vertices without faces."""
+    V = np.asarray(vertices, dtype=np.float64)
+    if faces is None or len(faces) == 0:
+        return V
+    tri = V[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if area.sum() <= 0:
+        return V
+    rng = np.random.default_rng(seed)
+    f = rng.choice(len(faces), size=n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    t = tri[f]
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])

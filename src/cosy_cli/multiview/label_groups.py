@@ -189,9 +189,16 @@ def fit_models(a: int, b: int, Xa: tuple, Xb: tuple, diam: float, rel: float = A
     return PairFit(a, b, c_id, best_c, best_c / diam, False, best_T)
 
 
+def surface_samples(V: np.ndarray, F: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(query points (N_QUERY, 3), target points (N_TARGET, 3)) mm of a mesh for :func:`fit_models`."""
+    from ..geometry.sampling import farthest_point_subset, sample_surface
+
+    T = sample_surface(V, F, N_TARGET, seed=1)
+    Q = farthest_point_subset(sample_surface(V, F, 2 * N_QUERY, seed=2), N_QUERY)
+    return Q, T
+
+
 def _surface_samples(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from .match_stage import sample_surface
-    from ..geometry.sampling import farthest_point_subset
     from ..objects.database import read_ply_mesh
 
     try:
@@ -201,9 +208,27 @@ def _surface_samples(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
         mesh = load_mesh(path)
         V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-    T = sample_surface(V, F, N_TARGET, seed=1)
-    Q = farthest_point_subset(sample_surface(V, F, 2 * N_QUERY, seed=2), N_QUERY)
-    return Q, T
+    return surface_samples(V, F)
+
+
+def fit_pairs(ids, extents: dict, sizes: dict, samples_of, fit_diameter, rel: float = AUTO_REL) -> list[PairFit]:
+    """:func:`fit_models` of every pair of ``ids`` whose sizes (one length per model, mm) and
+    sorted extents (3,) agree within PREFILTER_REL. ``samples_of(o)`` gives a model's
+    (query, target) samples (called once per model, only for models in such a pair);
+    ``fit_diameter(a, b)`` the diameter (mm) the chamfer distance is relative to."""
+    samples: dict = {}
+    fits = []
+    ids = sorted(ids)
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            if abs(sizes[a] - sizes[b]) > PREFILTER_REL * max(sizes[a], sizes[b]) or \
+                    np.any(np.abs(extents[a] - extents[b]) > PREFILTER_REL * np.maximum(extents[a], extents[b])):
+                continue
+            for o in (a, b):
+                if o not in samples:
+                    samples[o] = samples_of(o)
+            fits.append(fit_models(a, b, samples[a], samples[b], fit_diameter(a, b), rel))
+    return fits
 
 
 CACHE_VERSION = 1
@@ -245,21 +270,10 @@ def _fit_to_json(f: PairFit) -> dict:
 
 def _compute_lookalikes(ds, rel: float) -> tuple:
     infos = ds.models_info()
-    ids = sorted(infos)
-    ext = {o: np.sort(np.asarray(infos[o].size_xyz, dtype=np.float64)) for o in ids}
-    samples: dict = {}
-    fits = []
-    for i, a in enumerate(ids):
-        for b in ids[i + 1:]:
-            da, db = float(infos[a].diameter), float(infos[b].diameter)
-            if abs(da - db) > PREFILTER_REL * max(da, db) or \
-                    np.any(np.abs(ext[a] - ext[b]) > PREFILTER_REL * np.maximum(ext[a], ext[b])):
-                continue
-            for o in (a, b):
-                if o not in samples:
-                    samples[o] = _surface_samples(ds.model_path(o))
-            fits.append(fit_models(a, b, samples[a], samples[b], max(da, db), rel))
-    return tuple(fits)
+    ext = {o: np.sort(np.asarray(i.size_xyz, dtype=np.float64)) for o, i in infos.items()}
+    diam = {o: float(i.diameter) for o, i in infos.items()}
+    return tuple(fit_pairs(infos, ext, diam, lambda o: _surface_samples(ds.model_path(o)),
+                           lambda a, b: max(diam[a], diam[b]), rel))
 
 
 def find_lookalikes(ds, rel: float = AUTO_REL) -> list[PairFit]:

@@ -67,7 +67,7 @@ from ..io import atomic, bop, cache, manifest
 from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
-from ..geometry.sampling import farthest_point_subset
+from ..geometry.sampling import farthest_point_subset, sample_surface
 from . import label_groups
 from .matching import LINK_NAMES, GroupResult, LabelTable, MatchParams, match_groups
 
@@ -215,24 +215,6 @@ def is_complete(out: str | Path) -> bool:
 # --------------------------------------------------------------------------------------------
 # model points without trimesh (start-up time): the numpy PLY reader + area-uniform sampling
 # --------------------------------------------------------------------------------------------
-def sample_surface(vertices: np.ndarray, faces: np.ndarray | None, n: int, seed: int = 0) -> np.ndarray:
-    """n area-uniform points (mm) on the triangles (deterministic); the vertices without faces."""
-    V = np.asarray(vertices, dtype=np.float64)
-    if faces is None or len(faces) == 0:
-        return V
-    tri = V[faces]
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if area.sum() <= 0:
-        return V
-    rng = np.random.default_rng(seed)
-    f = rng.choice(len(faces), size=n, p=area / area.sum())
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    t = tri[f]
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
-
-
 def model_points(path: str | Path, n_points: int, seed: int = 0) -> np.ndarray:
     """``n_points`` well-spread surface points (mm) of a model: 2000 area-uniform samples, then
     farthest-point sampling. Reads PLYs with numpy; other files (or odd PLYs) with trimesh."""
