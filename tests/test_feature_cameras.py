@@ -13,6 +13,7 @@ import warnings  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from cosy_cli.evaluation.pose_error import re as angle_deg  # noqa: E402  (rotation error, degrees)
 from realdata import LMO, gt_cameras, needs  # noqa: E402
 
 warnings.filterwarnings("ignore", message=".*orthonormal only.*")
@@ -45,7 +46,7 @@ def test_feature_camera_takes_rotation_and_direction_from_the_images_and_scale_f
     X_cam[2] *= 1.1
     T = ft.feature_camera(np.eye(4), T_obj, pair, conf, X, X_cam)
     assert T is not None
-    assert ft.rotation_angle_deg(T[:3, :3], T_ref_cam[:3, :3]) < 1e-6
+    assert angle_deg(T[:3, :3], T_ref_cam[:3, :3]) < 1e-6
     assert np.linalg.norm(T[:3, 3] - T_ref_cam[:3, 3]) < 1.0  # the median ignores the one off in depth
     # without object centres: the object-level baseline projected on the direction
     T2 = ft.feature_camera(np.eye(4), T_obj, pair, conf)
@@ -77,13 +78,13 @@ def test_relative_pose_of_two_real_lmo_views_matches_the_gt_derived_one():
     cache = ft.FeatureCache()
     p = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, b, ds.read_rgb(s, b), cams[b].K)
     assert p is not None and p.n_inliers >= 100
-    assert ft.rotation_angle_deg(p.T_a_b[:3, :3], T_gt[:3, :3]) < 2.0
+    assert angle_deg(p.T_a_b[:3, :3], T_gt[:3, :3]) < 2.0
     d_gt = T_gt[:3, 3] / np.linalg.norm(T_gt[:3, 3])
     assert np.degrees(np.arccos(np.clip(p.T_a_b[:3, 3] @ d_gt, -1, 1))) < 5.0
     assert abs(np.linalg.norm(p.T_a_b[:3, 3]) - 1.0) < 1e-9
     # the same image twice: no baseline to speak of, but the rotation is the identity
     q = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, a, ds.read_rgb(s, a), cams[a].K)
-    assert q is None or ft.rotation_angle_deg(q.T_a_b[:3, :3], np.eye(3)) < 1.0
+    assert q is None or angle_deg(q.T_a_b[:3, :3], np.eye(3)) < 1.0
 
 
 @needs(LMO)
@@ -178,7 +179,6 @@ def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_c
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.geometry.poses import invert
     from cosy_cli.multiview import match_stage, refine_stage
-    from cosy_cli.multiview.features import rotation_angle_deg
     from realdata import orthonormal
 
     ds = BopDataset(LMO, "test")
@@ -204,7 +204,7 @@ def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_c
     assert [c["im_id"] for c in g["feature_only_cameras"]] == [b]
     T_gt = gt_cameras(ds, s, [a, b])
     T_f = np.array(g["feature_only_cameras"][0]["T_world_cam_features"])
-    assert rotation_angle_deg(T_f[:3, :3], (invert(T_gt[a]) @ T_gt[b])[:3, :3]) < 3.0
+    assert angle_deg(T_f[:3, :3], (invert(T_gt[a]) @ T_gt[b])[:3, :3]) < 3.0
     reps = g["leftovers"]["replaced"]
     assert {x["im_id"] for x in reps} == {b} and len(reps) > len(gt[b]) // 2  # 5 of the 7 here
     pred = bop.read_results(tmp_path / "r" / "predictions.csv", check_rotations=False)

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.poses import invert
+from ..geometry.poses import invert, rotation_angle
 
 
 @dataclass
@@ -117,12 +117,6 @@ def relative_pose(cache: FeatureCache, key_a, rgb_a: np.ndarray, K_a: np.ndarray
     return PairPose(invert(T_b_a), int(n_in), int(len(pairs)))
 
 
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle (deg) of the rotation between two 3x3 rotations."""
-    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
 def feature_camera(T_world_ref: np.ndarray, T_world_cam: np.ndarray, pair: PairPose | None,
                    conf: FeatureConf, centres_ref: np.ndarray | None = None,
                    centres_cam: np.ndarray | None = None) -> np.ndarray | None:
@@ -135,7 +129,7 @@ def feature_camera(T_world_ref: np.ndarray, T_world_cam: np.ndarray, pair: PairP
         return None
     T_ref_cam_obj = invert(T_world_ref) @ T_world_cam  # object-level estimate, in the reference camera
     T_ref_cam = pair.T_a_b
-    if rotation_angle_deg(T_ref_cam_obj[:3, :3], T_ref_cam[:3, :3]) > conf.max_disagree_deg:
+    if np.degrees(rotation_angle(T_ref_cam_obj[:3, :3].T @ T_ref_cam[:3, :3])) > conf.max_disagree_deg:
         return None
     if centres_ref is not None and len(centres_ref):
         s = _median_scale(T_ref_cam, centres_ref, centres_cam)
