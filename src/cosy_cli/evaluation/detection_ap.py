@@ -29,6 +29,7 @@ from ..io.dataset import BopDataset
 from .protocols import CI_LEVEL, bootstrap_weights, percentile_interval, resampling_units
 
 MISSED = "missed"
+CI_RESAMPLES = 1000  # bootstrap resamples of AP50 (the pose ARs take 2000: each of these re-ranks detections)
 
 
 def _gt_boxes(ds: BopDataset, scene_ids) -> pd.DataFrame:
@@ -138,9 +139,6 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
         if g and not res:
             out["per_object"][str(o)].update(AP=0.0, AP50=0.0)
     return out
-
-
-CI_RESAMPLES = 1000  # fewer than the pose ARs' 2000: each resample re-ranks every object's detections
 
 
 def ap_from_matches(scores: np.ndarray, tp: np.ndarray, fp: np.ndarray, n_gt: float, weights: np.ndarray | None = None,

@@ -498,15 +498,16 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         atomic.write_json(tmp / "scores.json", _clean(scores))
         manifest.write_folder_manifest(tmp, "cosy evaluate", OUTPUT_FILES)
     for k in ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
-              "bop19_average_recall_mspd", "bop19_average_recall_mssd_mspd", "auc_adds", "auc_add_or_adds", "recall_adds_0.1d", "vivo_auc_adds",
-              "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d", "vivo_auc_adds_scene_targets",
-              "vivo_recall_adds_0.1d_scene_targets", "vivo_map_adds_0.1d_scene_targets"):
+              "bop19_average_recall_mspd", "bop19_average_recall_mssd_mspd", "auc_adds", "auc_add_or_adds",
+              "recall_adds_0.1d", "vivo_auc_adds", "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d",
+              "vivo_auc_adds_scene_targets", "vivo_recall_adds_0.1d_scene_targets", "vivo_map_adds_0.1d_scene_targets"):
         if k in scores:
             v = scores[k]
-            ci = scores.get("bop19_ci", {}).get(k)
+            b_ci = scores.get("bop19_ci", {})
+            ci = b_ci.get(k)
             log(f"  {k}: {'n/a' if v is None or (isinstance(v, float) and not math.isfinite(v)) else f'{v:.4f}'}"
-                + (f"  ({scores['bop19_ci']['level']:.0%} interval {ci[0]:.3f}-{ci[1]:.3f} over "
-                   f"{scores['bop19_ci']['units']} {scores['bop19_ci']['unit']}s)" if ci and v is not None else ""))
+                + (f"  ({b_ci['level']:.0%} interval {ci[0]:.3f}-{ci[1]:.3f} over {b_ci['units']} {b_ci['unit']}s)"
+                   if ci and v is not None else ""))
     log(f"evaluate: wrote {out} in {time.time() - t0:.1f} s")
     return _clean(scores)
 

@@ -164,8 +164,9 @@ DEFAULT_CONF = {
     "image_check_box": "union",  # candidate | refined | union (of the two): the projected model box scored in
     # leftovers (image check on): single-view candidates that no refined object explains, in placed
     # views, that may be one object across views (same label; centres carried through the cameras
-    # land within half the projected size) are scored in all those views; each takes the member
-    # pose with the best mean score when it beats its own by more than image_check_margin
+    # land within the projected size: image_check.LEFTOVER_MAX_OFFSET) are scored in all those
+    # views; each takes the member pose with the best mean score when it beats its own by more
+    # than image_check_margin
     "image_check_leftovers": True,
     # beyond the paper (multiview.features): without known cameras, each view's rotation and
     # baseline direction relative to the gauge view from SIFT features and an essential matrix,

@@ -488,8 +488,9 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
                 lines.append(f"{k:<32}" + "".join(f"{v:>13.3f}" if v is not None else f"{'-':>13}" for v in vals))
                 cis = [(m[n].get("bop19_ci") or {}) for n in names]
                 if k in ("bop19_average_recall", "bop19_average_recall_mssd_mspd") and any(c.get(k) for c in cis):
-                    unit = next(c["unit"] for c in cis if c.get(k))
-                    lines.append(f"{'  95 % interval (' + unit + 's)':<32}" + "".join(
+                    first = next(c for c in cis if c.get(k))
+                    label = f"  {first['level'] * 100:.0f} % interval ({first['unit']}s)"
+                    lines.append(f"{label:<32}" + "".join(
                         f"{f'{c[k][0]:.3f}-{c[k][1]:.3f}' if c.get(k) else '-':>13}" for c in cis))
     sv = manifest.get("single_view") or {}
     if sv.get("groups"):
