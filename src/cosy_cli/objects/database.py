@@ -129,10 +129,10 @@ def missing_texture_files(path: str | Path, header: "PlyHeader | None" = None) -
 # PLY element counts are checked against the data present before trimesh reads a file: trimesh
 # reads a truncated ASCII PLY without complaint (fewer faces, or none) and fails on a truncated
 # binary one with messages that do not say what is wrong.
-_PLY_SIZES = {
-    "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
-    "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8,
-}
+_PLY_NUMPY = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}  # PLY type -> numpy type
+_PLY_SIZES = {k: np.dtype(v).itemsize for k, v in _PLY_NUMPY.items()}
 _PLY_NP = {1: "u1", 2: "u2", 4: "u4"}
 
 
@@ -197,11 +197,6 @@ def read_ply_header(path: str | Path, data: bytes | None = None) -> PlyHeader:
 def _declared(header: PlyHeader) -> str:
     names = {"vertex": "vertices", "face": "faces"}
     return " and ".join(f"{c} {names.get(n, n)}" for n, c, _ in header.elements)
-
-
-_PLY_NUMPY = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 
 
 def read_ply_mesh(path: str | Path, data: bytes | None = None, header: PlyHeader | None = None
