@@ -26,9 +26,10 @@ def orthonormal(T):
     LM-O rotations are orthonormal only to about 1e-2)."""
     import numpy as np
 
+    from cosy_cli.io.bop import nearest_rotation
+
     T = np.array(T, dtype=np.float64)
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = u @ vt
+    T[:3, :3] = nearest_rotation(T[:3, :3])
     return T
 
 
