@@ -40,8 +40,6 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import shutil  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -101,14 +99,9 @@ def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path
     if data == "lmo":
         root, split, metrics = REALDATA / "lmo_dev", "test", "bop19"
     else:
-        src = REALDATA / "ycbv_0000"
-        root, split, metrics = work / "ycbv_0000", "train_real", "bop19"
-        if not (root / split / "000000" / "scene_gt_info.json").is_file():
-            shutil.copytree(src, root, dirs_exist_ok=True)
-            import subprocess
+        from bench_realdata_multiview import prepare_ycbv
 
-            subprocess.run([sys.executable, "-m", "cosy_cli", "gt-info", "--dataset", str(root), "--split", split],
-                           check=True, capture_output=True)
+        root, split, metrics = prepare_ycbv(REALDATA / "ycbv_0000", work / "ycbv_0000"), "train_real", "bop19"
     ds = BopDataset(root, split)
     db = ObjectDatabase.from_models_dir(root / ("models_eval" if (root / "models_eval").is_dir() else "models"))
     for name in variants:

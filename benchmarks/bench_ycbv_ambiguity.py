@@ -21,8 +21,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import argparse  # noqa: E402
-import shutil  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import warnings  # noqa: E402
@@ -32,8 +30,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
-TH = np.arange(0.05, 0.51, 0.05)  # MSSD (x diameter) and VSD thresholds
-TH_MSPD = np.arange(5, 51, 5)  # px at 640 wide
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -46,17 +43,15 @@ def main() -> None:
         print(f"skipped: {src} is absent")
         return
     warnings.filterwarnings("ignore")
+    from bench_realdata_multiview import prepare_ycbv
     from cosy_cli.evaluation import evaluate_stage
+    from cosy_cli.evaluation.protocols import BOP19_THRESHOLDS as TH
     from cosy_cli.io import bop
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
     from cosy_cli.singleview.depth_hypotheses import near_symmetries, visible_depth_score
 
-    root, split = args.work / "ycbv_0000", "train_real"
-    if not (root / split / "000000" / "scene_gt_info.json").is_file():  # the release has none (VSD needs it)
-        shutil.copytree(src, root, dirs_exist_ok=True)
-        subprocess.run([sys.executable, "-m", "cosy_cli", "gt-info", "--dataset", str(root), "--split", split],
-                       check=True, capture_output=True)
+    root, split = prepare_ycbv(src, args.work / "ycbv_0000"), "train_real"  # + scene_gt_info.json (VSD needs it)
     ds = BopDataset(root, split)
     db = ObjectDatabase.from_models_dir(root / "models")
     infos = ds.models_info()
@@ -78,10 +73,10 @@ def main() -> None:
                             log=lambda *_: None, progress=False)
         e = pd.read_csv(args.work / f"eval_{j}" / "errors.csv")
         vsd = [c for c in e.columns if c.startswith("vsd")]
-        v_rec = (e[vsd].to_numpy()[:, :, None] < TH[None, None]).mean((1, 2))  # VSD: mean over tau and thresholds
+        v_rec = (e[vsd].to_numpy()[:, :, None] < TH["vsd"][None, None]).mean((1, 2))  # mean over tau and thresholds
         d = np.array([infos[int(o)].diameter for o in e["obj_id"]])
-        m_rec = (e["mssd"].to_numpy()[:, None] < TH[None] * d[:, None]).mean(1)
-        p_rec = (e["mspd"].to_numpy()[:, None] < TH_MSPD[None]).mean(1)
+        m_rec = (e["mssd"].to_numpy()[:, None] < TH["mssd"][None] * d[:, None]).mean(1)
+        p_rec = (e["mspd"].to_numpy()[:, None] < TH["mspd"][None]).mean(1)
         for im, o, a in zip(e["im_id"], e["obj_id"], (v_rec + m_rec + p_rec) / 3):
             ar[(int(im), int(o), j)] = float(a)
     per = {o: {"gt": [], "all": [], "tie": [], "n_tie": []} for o in objs}
