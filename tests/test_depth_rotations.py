@@ -146,10 +146,12 @@ def test_handle_in_free_space_loses(db):
 
 
 @needs(YCBV)
-def test_ycbv_frame1_rotations(tmp_path_factory):
+def test_ycbv_frames_rotations(tmp_path_factory):
     """Templates -> verification -> ICP + near-symmetry variants, picked by the visibility-aware
-    depth score + image score, on YCB-V frame 1 with its GT boxes: the mug (whose handle is hidden
-    behind it) gets a right rotation, and every object a right depth."""
+    depth score + image score, on the 10 YCB-V frames with their GT boxes: every object gets a
+    right depth in every frame, and the mug (whose handle is hidden behind it in most frames) a
+    right rotation in at least 4 of them (5 at the defaults of 2026-12-02; which frames is a near
+    coin toss; the chain before verification, 5 template hypotheses to ICP, gets 2)."""
     from cosy_cli.singleview import estimate_stage as es
     from cosy_cli.singleview.templates import TemplateSet
 
@@ -159,25 +161,27 @@ def test_ycbv_frame1_rotations(tmp_path_factory):
     es.ensure_templates(YCBV / "models", tdir, log=lambda *_: None)
     conf = es.decide(es.resolve_conf("templates-icp"), coarse_model=None, refiner_model=None, has_depth=True)
     est = es.Estimator(conf, db, templates=TemplateSet.load(tdir))
-    im = 1
-    gts = ds.scene_gt(0)[im]
-    boxes = []
-    for g in range(len(gts)):
-        rows, cols = np.nonzero(ds.read_mask(0, im, g, visib=True))
-        boxes.append([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1])
-    ids = np.array([g.obj_id for g in gts])
+    S = db[14].symmetries_with_steps(64)[:, :3, :3]
+    mug_right = []
     try:
-        r = est.estimate(ds.read_rgb(0, im), ds.read_depth(0, im), ds.scene_camera(0)[im].K, np.array(boxes, float),
-                         ids)
+        for im in range(1, 11):
+            gts = ds.scene_gt(0)[im]
+            boxes = []
+            for g in range(len(gts)):
+                rows, cols = np.nonzero(ds.read_mask(0, im, g, visib=True))
+                boxes.append([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1])
+            ids = np.array([g.obj_id for g in gts])
+            r = est.estimate(ds.read_rgb(0, im), ds.read_depth(0, im), ds.scene_camera(0)[im].K,
+                             np.array(boxes, float), ids)
+            for i, g in enumerate(gts):
+                dt = np.linalg.norm(r.T[i, :3, 3] - g.T_cam_obj[:3, 3])
+                assert dt < 20.0, (im, g.obj_id, dt)  # depth: every object (flips of the untextured box included)
+                if g.obj_id == 14:  # the mug
+                    c = (np.einsum("ij,sij->s", r.T[i, :3, :3], g.T_cam_obj[:3, :3] @ S) - 1) / 2
+                    mug_right.append(np.degrees(np.arccos(np.clip(c, -1, 1))).min() < 15.0)
+            assert r.alternatives.shape[1] >= conf["top_k"] - 1  # the variants are listed as runners-up too
+            assert np.all(np.isnan(r.alt_score) | np.isfinite(r.alt_score))
     finally:
         est.close()
-    for i, g in enumerate(gts):
-        S = db[int(g.obj_id)].symmetries_with_steps(64)[:, :3, :3]
-        c = (np.einsum("ij,sij->s", r.T[i, :3, :3], g.T_cam_obj[:3, :3] @ S) - 1) / 2
-        rot = np.degrees(np.arccos(np.clip(c, -1, 1))).min()
-        dt = np.linalg.norm(r.T[i, :3, 3] - g.T_cam_obj[:3, 3])
-        assert dt < 20.0, (g.obj_id, dt)  # depth: every object (flips of the untextured box included)
-        if g.obj_id == 14:  # the mug
-            assert rot < 15.0, rot
-    assert r.alternatives.shape[1] >= conf["top_k"] - 1  # the variants are listed as runners-up too
-    assert np.all(np.isnan(r.alt_score) | np.isfinite(r.alt_score))
+    assert len(mug_right) == 10
+    assert sum(mug_right) >= 4, mug_right

@@ -35,16 +35,19 @@ Per candidate (:func:`refine_with_depth`):
    otherwise the input pose is returned with ``ok = False``.
 6. Scores of the returned poses (:func:`depth_fit_score` and the inlier fraction), vectorised.
 
-All lengths in mm. Vectorised over points; plain Python loops over candidates and iterations.
+All lengths in mm. Vectorised over points and candidates (the ICP steps of ``ICP_CHUNK``
+candidates are solved together, each on its own trim schedule); Python loops run over distinct
+boxes, objects and iterations only.
 """
 
 from __future__ import annotations
 
-import math
 import weakref
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..geometry.rotations import axis_angle_to_matrix
 
 N_SURFACE = 3000  # surface samples per object
 SURFACE_SEED = 0
@@ -59,6 +62,9 @@ GRID_STEPS = 48  # nearest-sample lookup grid: voxel side = diameter / GRID_STEP
 GRID_MARGIN = 0.25  # ... covering the model's box grown by this fraction of the diameter (at least)
 STEP_TOL = 0.02  # a step moving the model less than this fraction of the trim distance has converged
 STEP_SKIP = 3  # ... and the trim schedule then skips this many levels
+ALIGN_CHUNK = 200_000
+ICP_CHUNK = 32
+ICP_DTYPE = np.float32  # the ICP's point arrays (the poses and the 6x6 systems stay float64)  # ICP problems solved together  # depth alignment: poses per batch such that poses x shifts x points stays below this
 
 
 @dataclass
@@ -297,154 +303,230 @@ def _box_points(depth: np.ndarray, K: np.ndarray, box) -> np.ndarray:
     return np.concatenate([pts, n])
 
 
-def _align_depth(T: np.ndarray, surf: _Surface, K: np.ndarray, depth: np.ndarray, tol: float) -> np.ndarray:
-    """T slid along the camera ray through its origin by the shift (|shift| < diameter) with the
-    best score a^2 / (a + v) over the camera-facing model points (``ALIGN_POINTS`` of them) at
-    their pixels: a points agree with the observed depth within ``tol`` mm, v lie in front of it
-    by more than tol (the model would hide observed surface; points behind it are occluded and
-    neutral). Weighting the agreement by its precision keeps a partly occluded object from being
-    pulled onto its occluder. A coarse search in steps of tol, then a fine one in steps of tol / 8.
-    T itself when the pose is behind the camera or no shift gives any agreement."""
-    t = T[:3, 3]
-    if t[2] <= 0:
-        return T
-    H, W = depth.shape
-    X = surf.points @ T[:3, :3].T + t
-    facing = np.einsum("ij,ij->i", surf.normals @ T[:3, :3].T, X) < -VISIBLE_COS * X[:, 2]
-    X = X[facing][:ALIGN_POINTS]  # the samples are in random order: a uniform subset
-    if len(X) < 10:
-        return T
-    ray = t / t[2]
-    flat_depth = depth.ravel()
+def _stacked(surfaces) -> tuple[list, np.ndarray]:
+    """The distinct surfaces of a list (in first-seen order) and each entry's index among them."""
+    uniq: dict[int, int] = {}
+    rows = np.array([uniq.setdefault(id(s), len(uniq)) for s in surfaces], dtype=np.intp)
+    by_id = {id(s): s for s in surfaces}
+    return [by_id[k] for k in uniq], rows
 
-    def agreement(shifts):
-        Xs = X[None] + shifts[:, None, None] * ray  # (S, n, 3)
-        z = Xs[..., 2]
-        ok = z > 1e-6
+
+def _align_depth(T: np.ndarray, surfaces, K: np.ndarray, depth: np.ndarray, tols: np.ndarray) -> np.ndarray:
+    """Each pose of T (M, 4, 4) slid along the camera ray through its origin by the shift
+    (|shift| < diameter) with the best score a^2 / (a + v) over its camera-facing model points
+    (the first ``ALIGN_POINTS`` of them) at their pixels: a points agree with the observed depth
+    within ``tols`` (M,) mm, v lie in front of it by more than tol (the model would hide observed
+    surface; points behind it are occluded and neutral). Weighting the agreement by its precision
+    keeps a partly occluded object from being pulled onto its occluder. A coarse search in steps
+    of tol, then a fine one in steps of tol / 8 (the median of its best shifts). A pose is kept as
+    it is when it is behind the camera, shows fewer than 10 facing points or no shift gives any
+    agreement. Batched over poses (in chunks), shifts and points."""
+    T = np.asarray(T, dtype=np.float64)
+    out = T.copy()
+    if len(T) == 0:
+        return out
+    H, W = depth.shape
+    flat_depth = depth.ravel()
+    uniq, rows = _stacked(surfaces)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    Rt = np.swapaxes(R, 1, 2)
+    X = np.matmul(np.stack([s.points for s in uniq])[rows], Rt) + t[:, None]  # (M, N, 3)
+    facing = np.einsum("mni,mni->mn", np.matmul(np.stack([s.normals for s in uniq])[rows], Rt), X) \
+        < -VISIBLE_COS * X[..., 2]
+    # the first ALIGN_POINTS facing samples (the samples are in random order: a uniform subset)
+    first = np.argsort(~facing, axis=1, kind="stable")[:, :ALIGN_POINTS]
+    X = np.take_along_axis(X, first[..., None], 1)  # (M, A, 3)
+    pmask = np.take_along_axis(facing, first, 1)
+    tols = np.asarray(tols, dtype=np.float64)
+    live = (t[:, 2] > 0) & (pmask.sum(1) >= 10)
+    ray = t / np.where(live, t[:, 2], 1.0)[:, None]
+    half = np.array([s.diameter for s in uniq])[rows] - tols
+    n_coarse = np.where(live, np.ceil((2 * half + 1e-9) / tols), 1).astype(np.int64)
+
+    def agreement(idx, shifts, valid):  # poses idx (m,), shifts (m, S) mm -> scores (m, S), -inf where not valid
+        x, y, z0 = (X[idx][:, None, :, i] for i in range(3))  # (m, 1, A)
+        sh = shifts[..., None]  # (m, S, 1)
+        r = ray[idx][:, None, None]
+        z = z0 + sh  # the ray's z component is 1
+        ok = (z > 1e-6) & pmask[idx][:, None]
         zs = np.where(ok, z, 1.0)
-        u = np.rint((K[0, 0] * Xs[..., 0] + K[0, 1] * Xs[..., 1]) / zs + K[0, 2])
-        v = np.rint(K[1, 1] * Xs[..., 1] / zs + K[1, 2])
+        ys = y + sh * r[..., 1]
+        u = np.rint((K[0, 0] * (x + sh * r[..., 0]) + K[0, 1] * ys) / zs + K[0, 2])
+        v = np.rint(K[1, 1] * ys / zs + K[1, 2])
         ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
         d = flat_depth.take(np.where(ok, v * W + u, 0).astype(np.intp))
         ok &= d > 0
-        agree = (ok & (np.abs(d - z) <= tol)).sum(1)
-        violate = (ok & (z < d - tol)).sum(1)  # the model would hide observed surface
-        return agree * agree / np.maximum(agree + violate, 1)  # agreement x its precision
+        tol = tols[idx][:, None, None]
+        agree = (ok & (np.abs(d - z) <= tol)).sum(2)
+        violate = (ok & (z < d - tol)).sum(2)  # the model would hide observed surface
+        return np.where(valid, agree * agree / np.maximum(agree + violate, 1), -np.inf)  # agreement x precision
 
-    half = surf.diameter - tol
-    coarse = np.arange(-half, half + 1e-9, tol)
-    score = agreement(coarse)
-    if score.max() <= 0:
-        return T
-    best = coarse[np.argmax(score)]
-    fine = best + np.arange(-tol, tol + 1e-9, tol / 8)
-    score = agreement(fine)
-    top = fine[score == score.max()]
-    shift = float(np.median(top))
-    out = T.copy()
-    out[:3, 3] = t + shift * ray
+    todo = np.flatnonzero(live)
+    chunk = max(1, ALIGN_CHUNK // (max(int(n_coarse.max()), 17) * ALIGN_POINTS))
+    for c0 in range(0, len(todo), chunk):
+        idx = todo[c0:c0 + chunk]
+        steps = np.arange(int(n_coarse[idx].max()))
+        coarse = -half[idx][:, None] + steps * tols[idx][:, None]
+        score = agreement(idx, coarse, steps < n_coarse[idx][:, None])
+        found = score.max(1) > 0
+        idx, coarse, score = idx[found], coarse[found], score[found]
+        if len(idx) == 0:
+            continue
+        m = np.arange(len(idx))
+        best = coarse[m, score.argmax(1)]
+        tol = tols[idx][:, None]
+        fine = best[:, None] + (-tol + np.arange(17) * (tol / 8))
+        score = agreement(idx, fine, True)
+        top = score == score.max(1, keepdims=True)
+        n_top = top.sum(1)
+        order = np.argsort(~top, axis=1, kind="stable")  # the best shifts first, in increasing order
+        shift = (fine[m, order[m, (n_top - 1) // 2]] + fine[m, order[m, n_top // 2]]) / 2  # their median
+        out[idx, :3, 3] = t[idx] + shift[:, None] * ray[idx]
     return out
 
 
 # ---------------------------------------------------------------------------- ICP
 
 
-def _icp(T0: np.ndarray, Qc: np.ndarray, surf: _Surface, conf: IcpConf):
-    """Trimmed point-to-plane ICP of observed camera points and normals Qc (6, n) (mm) onto the model.
-    Returns (T_cam_obj, n_final_inliers, rmse_mm)."""
-    T = T0.copy()
-    d0 = max(conf.trim_start * surf.diameter, conf.trim_end_mm)
-    n_it = max(int(conf.iterations), 1)
-    trims = np.geomspace(d0, conf.trim_end_mm, n_it) if n_it > 1 else np.array([conf.trim_end_mm])
-    grid = surf.grid(d0)
-    scale = surf.diameter / 2  # makes rotation columns commensurate with translation (mm)
-    A = np.empty((6, Qc.shape[1]))
-    k = 0
-    while k < n_it:
-        trim = trims[k]
-        Q, e, nn, s = _pairs(T, Qc, surf, grid, trim)
-        w = 1.0 - s
-        w *= w  # biweight of the distance; 0 for rejected pairs
-        sw = w.sum()
-        if np.count_nonzero(w) < MIN_PAIRS:
-            return T, int(np.count_nonzero(w)), np.nan
-        c = (Q @ w) / sw
-        a = Q - c[:, None]
-        r = np.einsum("ij,ij->j", e, nn)
-        A[0] = (a[1] * nn[2] - a[2] * nn[1]) / scale
-        A[1] = (a[2] * nn[0] - a[0] * nn[2]) / scale
-        A[2] = (a[0] * nn[1] - a[1] * nn[0]) / scale
-        A[3:] = nn
-        Aw = A * w
-        Hm = Aw @ A.T
-        g = Aw @ r
-        Hm.flat[::7] += 1e-6 * sw  # slight damping: directions the data leave free (symmetries) stay put
-        x = -np.linalg.solve(Hm, g)
-        omega, vel = x[:3] / scale, x[3:]
-        Rw = _rodrigues(omega)
-        # the step moves the observed points in the object frame: q -> Rw (q - c) + c + vel
-        D_inv = np.eye(4)
-        D_inv[:3, :3] = Rw.T
-        D_inv[:3, 3] = c - Rw.T @ (c + vel)
-        T = T @ D_inv
-        step = math.sqrt(omega @ omega) * scale + math.sqrt(vel @ vel)  # mm, about the largest point motion
-        if step < STEP_TOL * trim:  # converged at this trim: go on with the final one, or stop there
-            if k >= n_it - 1:
-                break
-            k = max(k + 1, min(n_it - 1, k + STEP_SKIP))
-        else:
-            k += 1
-    Q, e, nn, s = _pairs(T, Qc, surf, grid, conf.trim_end_mm)
-    keep = s < 1.0
-    if not keep.any():
-        return T, 0, np.nan
-    r = np.einsum("ij,ij->j", e[:, keep], nn[:, keep])
-    return T, int(keep.sum()), float(np.sqrt(np.mean(r ** 2)))
+class _Batch:
+    """The model data of M ICP problems gathered for vectorised steps: each row's surface samples
+    and normals (by index into the stacked distinct surfaces) and its nearest-sample grid (the
+    distinct grids' tables concatenated, with per-row origin, voxel side, strides and offset)."""
+
+    def __init__(self, surfaces, reach: np.ndarray):
+        uniq, rows = _stacked(surfaces)
+        self.rows = rows
+        self.n = N_SURFACE
+        self.points = np.concatenate([s.points_t for s in uniq], 1).astype(ICP_DTYPE)  # (3, U * N)
+        self.normals = np.concatenate([s.normals_t for s in uniq], 1).astype(ICP_DTYPE)
+        self.n_dot_p = np.concatenate([s.n_dot_p for s in uniq]).astype(ICP_DTYPE)  # (U * N,)
+        first = np.unique(rows, return_index=True)[1]
+        grids = [uniq[u].grid(reach[i]) for u, i in enumerate(first)]
+        offsets = np.cumsum([0] + [g.index.size for g in grids[:-1]])
+        self.index = np.concatenate([g.index.astype(np.intp) for g in grids])
+        self.origin = np.stack([g.origin for g in grids])[rows]  # (M, 3)
+        self.inv_h = (1.0 / np.array([g.h for g in grids]))[rows]
+        self.strides = np.stack([g.strides for g in grids])[rows]
+        self.top = np.stack([g.top[:, 0] for g in grids])[rows]
+        self.offset = offsets[rows]
+
+    def nearest(self, sel: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """Nearest-sample indices (m, n) into ``points`` of points Q (m, 3, n) (object frames) of rows sel."""
+        ijk = np.rint((Q - self.origin[sel][:, :, None]) * self.inv_h[sel][:, None, None])
+        np.clip(ijk, 0.0, self.top[sel][:, :, None], out=ijk)
+        cell = np.einsum("mi,min->mn", self.strides[sel], ijk).astype(np.intp) + self.offset[sel][:, None]
+        return self.index.take(cell) + (self.rows[sel] * self.n)[:, None]
 
 
-def _pairs(T, Qc, surf: _Surface, grid: _NearestGrid, trim: float):
-    """Observed points and normals Qc (6, n) (camera frame) in the object frame, paired with their
-    nearest model samples: (Q (3, n), e = Q - p (3, n), model normals (3, n), s (n,)) with
-    s = squared distance / trim^2, set to 1 (rejected) where it exceeds 1, where the model normal
-    faces away from the camera or where the two normals differ by more than acos(NORMAL_COS)."""
-    R, t = T[:3, :3], T[:3, 3]
-    Q = R.T @ (Qc[:3] - t[:, None])
-    j = grid.lookup(Q)
-    e = Q - surf.points_t.take(j, axis=1)
-    nn = surf.normals_t.take(j, axis=1)
-    s = np.einsum("ij,ij->j", e, e) * (1.0 / trim ** 2)
-    cam = -R.T @ t  # camera centre in the object frame; |cam - p| ~ |cam| for the facing test
-    facing = (cam @ surf.normals_t - surf.n_dot_p) > FACING_COS_ICP * np.linalg.norm(cam)
-    same = np.einsum("ij,ij->j", R.T @ Qc[3:], nn) > NORMAL_COS
-    s[(s > 1.0) | ~facing.take(j) | ~same] = 1.0
+def _pairs(T, Qc, valid, batch: _Batch, sel, trim):
+    """Observed points and normals Qc (m, 6, n) (camera frame; ``valid`` (m, n) marks the real ones)
+    of rows ``sel`` in their object frames, paired with their nearest model samples: (Q (m, 3, n),
+    e = Q - p, model normals (m, 3, n), s (m, n)) with s = squared distance / trim^2 (trim (m,) mm),
+    set to 1 (rejected) where it exceeds 1, where the model normal faces away from the camera,
+    where the two normals differ by more than acos(NORMAL_COS) and for padding."""
+    Rt = np.swapaxes(T[:, :3, :3], 1, 2).astype(Qc.dtype)  # R^T
+    t = T[:, :3, 3].astype(Qc.dtype)
+    Q = np.matmul(Rt, Qc[:, :3] - t[:, :, None])
+    j = batch.nearest(sel, Q)
+    e = Q - np.moveaxis(batch.points[:, j], 0, 1)
+    nn = np.moveaxis(batch.normals[:, j], 0, 1)
+    s = np.einsum("min,min->mn", e, e) / (trim * trim).astype(Qc.dtype)[:, None]
+    cam = -np.einsum("mij,mj->mi", Rt, t)  # camera centre in the object frame; |cam - p| ~ |cam| for the facing test
+    facing = np.einsum("mi,min->mn", cam, nn) - batch.n_dot_p.take(j) \
+        > FACING_COS_ICP * np.linalg.norm(cam, axis=1)[:, None]
+    same = np.einsum("min,min->mn", np.matmul(Rt, Qc[:, 3:]), nn) > NORMAL_COS
+    s[(s > 1.0) | ~facing | ~same | ~valid] = 1.0
     return Q, e, nn, s
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector w (3,) (radians)."""
-    x, y, z = (float(c) for c in w)
-    th = math.sqrt(x * x + y * y + z * z)
-    if th < 1e-12:
-        return np.eye(3)
-    x, y, z = x / th, y / th, z / th
-    s, c = math.sin(th), math.cos(th)
-    C = 1.0 - c
-    return np.array([[c + x * x * C, x * y * C - z * s, x * z * C + y * s],
-                     [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
-                     [z * x * C - y * s, z * y * C + x * s, c + z * z * C]])
+def _icp(T0: np.ndarray, Qc: np.ndarray, valid: np.ndarray, surfaces, conf: IcpConf):
+    """Trimmed point-to-plane ICP of M problems at once: observed camera points and normals Qc
+    (M, 6, n) (mm; ``valid`` (M, n) marks the real columns) onto the models ``surfaces``, starting
+    from T0 (M, 4, 4). Each row follows its own trim schedule and stops on its own. Returns
+    (T_cam_obj (M, 4, 4), final inliers (M,), rmse_mm (M,))."""
+    M = len(T0)
+    T = T0.copy()
+    diam = np.array([s.diameter for s in surfaces])
+    d0 = np.maximum(conf.trim_start * diam, conf.trim_end_mm)
+    n_it = max(int(conf.iterations), 1)
+    trims = np.geomspace(d0, conf.trim_end_mm, n_it, axis=1) if n_it > 1 else np.full((M, 1), conf.trim_end_mm)
+    batch = _Batch(surfaces, d0)
+    scale = diam / 2  # makes rotation columns commensurate with translation (mm)
+    k = np.zeros(M, np.int64)
+    running = np.ones(M, bool)
+    n_in = np.zeros(M, np.int64)
+    rmse = np.full(M, np.nan)
+    final = np.ones(M, bool)  # rows whose final inliers are counted after the loop
+    while running.any():
+        sel = np.flatnonzero(running)
+        trim = trims[sel, k[sel]]
+        Q, e, nn, s = _pairs(T[sel], Qc[sel], valid[sel], batch, sel, trim)
+        w = 1.0 - s
+        w *= w  # biweight of the distance; 0 for rejected pairs
+        cnt = np.count_nonzero(w, axis=1)
+        few = cnt < MIN_PAIRS
+        if few.any():  # too few pairs to solve a step: stop there
+            n_in[sel[few]] = cnt[few]
+            running[sel[few]] = final[sel[few]] = False
+            keep = ~few
+            sel, trim, Q, e, nn, w = sel[keep], trim[keep], Q[keep], e[keep], nn[keep], w[keep]
+            if len(sel) == 0:
+                break
+        sw = w.sum(1, dtype=np.float64)
+        c = np.einsum("min,mn->mi", Q, w).astype(np.float64) / sw[:, None]
+        a = Q - c.astype(Q.dtype)[:, :, None]
+        r = np.einsum("min,min->mn", e, nn)
+        sc = scale[sel][:, None].astype(Q.dtype)
+        A = np.empty((len(sel), 6, a.shape[2]), Q.dtype)
+        A[:, 0] = (a[:, 1] * nn[:, 2] - a[:, 2] * nn[:, 1]) / sc
+        A[:, 1] = (a[:, 2] * nn[:, 0] - a[:, 0] * nn[:, 2]) / sc
+        A[:, 2] = (a[:, 0] * nn[:, 1] - a[:, 1] * nn[:, 0]) / sc
+        A[:, 3:] = nn
+        Aw = A * w[:, None]
+        Hm = np.matmul(Aw, np.swapaxes(A, 1, 2)).astype(np.float64)
+        g = np.einsum("min,mn->mi", Aw, r).astype(np.float64)
+        Hm[:, np.arange(6), np.arange(6)] += 1e-6 * sw[:, None]  # directions the data leave free (symmetries) stay put
+        x = -np.linalg.solve(Hm, g[..., None])[..., 0]
+        omega, vel = x[:, :3] / scale[sel][:, None], x[:, 3:]
+        Rw = axis_angle_to_matrix(omega)
+        # the step moves the observed points in the object frame: q -> Rw (q - c) + c + vel
+        D_inv = np.tile(np.eye(4), (len(sel), 1, 1))
+        D_inv[:, :3, :3] = np.swapaxes(Rw, 1, 2)
+        D_inv[:, :3, 3] = c - np.einsum("mji,mj->mi", Rw, c + vel)
+        T[sel] = np.matmul(T[sel], D_inv)
+        step = np.linalg.norm(omega, axis=1) * scale[sel] + np.linalg.norm(vel, axis=1)  # mm, ~ the largest point motion
+        conv = step < STEP_TOL * trim  # converged at this trim: go on with the final one, or stop there
+        ks = k[sel]
+        k[sel] = np.where(conv, np.where(ks >= n_it - 1, n_it, np.maximum(ks + 1, np.minimum(n_it - 1, ks + STEP_SKIP))),
+                          ks + 1)
+        running[sel] = k[sel] < n_it
+    sel = np.flatnonzero(final)
+    if len(sel):
+        _, e, nn, s = _pairs(T[sel], Qc[sel], valid[sel], batch, sel, np.full(len(sel), conf.trim_end_mm))
+        keep = s < 1.0
+        n_in[sel] = keep.sum(1)
+        r2 = np.where(keep, np.einsum("min,min->mn", e, nn) ** 2, 0.0)
+        rmse[sel] = np.where(n_in[sel] > 0, np.sqrt(r2.sum(1, dtype=np.float64) / np.maximum(n_in[sel], 1)), np.nan)
+    return T, n_in, rmse
 
 
-def _within_change(T0: np.ndarray, Ta: np.ndarray, T: np.ndarray, surf: _Surface, conf: IcpConf) -> bool:
-    """Divergence check, modulo the object's symmetries: some pose T S equivalent to the result
+def _within_change(T0: np.ndarray, Ta: np.ndarray, T: np.ndarray, surfaces, conf: IcpConf) -> np.ndarray:
+    """Divergence check (M,), modulo the objects' symmetries: some pose T S equivalent to the result
     is within ``max_rotation_deg`` of the input rotation and ``max_translation_frac * diameter``
-    of the depth-aligned translation."""
-    S = surf.symmetries  # (S, 4, 4), identity first; continuous ones discretised
-    R = T[:3, :3] @ S[:, :3, :3]
-    t = S[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
-    cos = (np.einsum("ij,sij->s", T0[:3, :3], R) - 1.0) / 2.0
-    ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    dt = np.linalg.norm(t - Ta[:3, 3], axis=1)
-    return bool(np.any((ang <= conf.max_rotation_deg) & (dt <= conf.max_translation_frac * surf.diameter)))
+    of the depth-aligned translation. Batched per distinct object."""
+    ok = np.zeros(len(T), bool)
+    uniq, rows = _stacked(surfaces)
+    for u, surf in enumerate(uniq):
+        i = np.flatnonzero(rows == u)
+        S = surf.symmetries  # (S, 4, 4), identity first; continuous ones discretised
+        R = np.einsum("mij,sjk->msik", T[i, :3, :3], S[:, :3, :3])
+        t = np.einsum("msj,mij->msi", np.broadcast_to(S[:, :3, 3], (len(i),) + S[:, :3, 3].shape), T[i, :3, :3]) \
+            + T[i, None, :3, 3]
+        cos = (np.einsum("mij,msij->ms", T0[i, :3, :3], R) - 1.0) / 2.0
+        ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        dt = np.linalg.norm(t - Ta[i, None, :3, 3], axis=2)
+        ok[i] = np.any((ang <= conf.max_rotation_deg) & (dt <= conf.max_translation_frac * surf.diameter), axis=1)
+    return ok
 
 
 def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = IcpConf()) -> DepthRefineResult:
@@ -453,7 +535,8 @@ def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = I
     depth_mm (H, W) float mm (0 = no measurement); K (3, 3); boxes (M, 4) x1, y1, x2, y2 px in
     pixel-edge coordinates (BOP bbox convention, x2 = x + w); obj_ids (M,); T_init (M, 4, 4)
     T_cam_obj mm; db: cosy_cli.objects.ObjectDatabase. Several rows may share a box (hypotheses
-    of one detection). Deterministic under ``conf.seed``.
+    of one detection). Deterministic under ``conf.seed``. All candidates are refined together
+    (vectorised over candidates and points; the loops are over distinct boxes and iterations).
     """
     depth = np.asarray(depth_mm)
     if depth.ndim != 2:
@@ -471,34 +554,51 @@ def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = I
     if M == 0:
         return DepthRefineResult(T_out, ok, np.zeros(0), rmse, np.zeros(0))
     surfaces = [_surface(db[int(i)]) for i in ids]
-
     need = max(conf.min_inliers, MIN_PAIRS)
     tols = _default_tol(surfaces)
-    box_cache: dict[tuple, np.ndarray] = {}
-    for i in range(M):
-        surf, T0 = surfaces[i], T_in[i]
-        key = tuple(boxes[i])
-        if key not in box_cache:  # the box's points and normals in a seeded random order, (6, n)
-            pts = _box_points(depth, K, boxes[i])
-            order = np.random.default_rng([conf.seed, len(box_cache)]).permutation(pts.shape[1])
-            box_cache[key] = pts.take(order, axis=1)
-        pts = box_cache[key]
-        if pts.shape[1] < need or not np.all(np.isfinite(T0)) or T0[2, 3] <= 0:
-            continue
-        Ta = _align_depth(T0, surf, K, depth, tols[i]) if conf.align_depth else T0
-        # the observed points near the object: the first max_points of them (a uniform subsample)
-        radius = surf.radius + max(conf.trim_start * surf.diameter, conf.trim_end_mm)
-        centre = Ta[:3, :3] @ surf.centre + Ta[:3, 3]
-        d = pts[:3] - centre[:, None]
-        near = np.flatnonzero(np.einsum("ij,ij->j", d, d) <= radius ** 2)[:conf.max_points]
-        if len(near) < need:
-            continue
-        T, n_in, rms = _icp(Ta, pts.take(near, axis=1), surf, conf)
-        rmse[i] = rms
-        good = (n_in >= conf.min_inliers and np.all(np.isfinite(T))
-                and _within_change(T0, Ta, T, surf, conf))
-        if good:
-            T_out[i], ok[i] = T, True
+    # each distinct box's points and normals (6, n), in a seeded random order
+    keys, box_of = np.unique(boxes, axis=0, return_inverse=True)
+    box_of = box_of.reshape(-1)
+    first_row = np.unique(box_of, return_index=True)[1]
+    pts_of = []
+    for b in np.argsort(first_row, kind="stable"):  # numbered in order of first appearance, as the seeds
+        pts = _box_points(depth, K, keys[b])
+        pts_of.append((b, pts.take(np.random.default_rng([conf.seed, len(pts_of)]).permutation(pts.shape[1]), axis=1)))
+    pts_of = dict(pts_of)
+    n_box = np.array([pts_of[b].shape[1] for b in box_of])
+    cand = np.flatnonzero((n_box >= need) & np.all(np.isfinite(T_in), axis=(1, 2)) & (T_in[:, 2, 3] > 0))
+    if len(cand):
+        cs = [surfaces[i] for i in cand]
+        Ta = _align_depth(T_in[cand], cs, K, depth, tols[cand]) if conf.align_depth else T_in[cand].copy()
+        # the observed points near each aligned object: the first max_points of them (a uniform subsample)
+        radius = np.array([s.radius + max(conf.trim_start * s.diameter, conf.trim_end_mm) for s in cs])
+        centre = np.einsum("mij,mj->mi", Ta[:, :3, :3], np.array([s.centre for s in cs])) + Ta[:, :3, 3]
+        near_of = []
+        for b in np.unique(box_of[cand]):
+            i = np.flatnonzero(box_of[cand] == b)
+            d = pts_of[b][:3][None] - centre[i][:, :, None]  # (m, 3, n)
+            near = np.einsum("min,min->mn", d, d) <= (radius[i] ** 2)[:, None]
+            near &= np.cumsum(near, axis=1) <= conf.max_points
+            near_of += [(r, pts_of[b][:, near[j]]) for j, r in enumerate(i)]
+        near_of.sort(key=lambda x: x[0])
+        counts = np.array([p.shape[1] for _, p in near_of])
+        go = np.flatnonzero(counts >= need)
+        if len(go):
+            n = int(counts[go].max())
+            Qc = np.zeros((len(go), 6, n), ICP_DTYPE)
+            valid = np.arange(n)[None] < counts[go][:, None]
+            for j, r in enumerate(go):
+                Qc[j, :, :counts[r]] = near_of[r][1]
+            rows = cand[go]
+            gs = [surfaces[i] for i in rows]
+            T, n_in, rms = np.empty((len(go), 4, 4)), np.zeros(len(go), np.int64), np.full(len(go), np.nan)
+            for c0 in range(0, len(go), ICP_CHUNK):  # a few dozen problems at a time: their arrays stay in cache
+                c = slice(c0, c0 + ICP_CHUNK)
+                T[c], n_in[c], rms[c] = _icp(Ta[go][c], Qc[c], valid[c], gs[c], conf)
+            rmse[rows] = rms
+            good = (n_in >= conf.min_inliers) & np.all(np.isfinite(T), axis=(1, 2))
+            good &= _within_change(T_in[rows], Ta[go], T, gs, conf)
+            T_out[rows[good]], ok[rows[good]] = T[good], True
 
     agree, visible, occluded = _agreement(depth, K, surfaces, T_out, tols)
     inlier_frac = np.where(visible > 0, agree / np.maximum(visible, 1), 0.0)
