@@ -145,6 +145,34 @@ def test_handle_in_free_space_loses(db):
     assert (~hidden).sum() >= 6 and np.all(s[1:][~hidden] < s[0] - 0.1)
 
 
+
+def test_screen_reaches_past_top_k(db):
+    """refine_and_rank with a screen: the right rotation, 9th of 12 hypotheses, is found by the
+    short ICP of all 12 and goes on to the full ICP; without the screen only the first 4 are
+    refined and all of them are wrong (ICP does not turn a pose by more than 30 deg)."""
+    from cosy_cli.singleview.icp import IcpConf
+
+    R_true = rotation_about_axis(np.array([1.0, 0.3, 0.2]), [0.7])[0]
+    T = make_pose(R_true, [10.0, -5.0, 500.0])
+    depth = _render_depth(db, [BOX], T[None], wall_z=650.0)
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(12, 3))
+    hyp = np.stack([make_pose(R_true @ rotation_about_axis(a, [np.radians(rng.uniform(50, 70))])[0],
+                              T[:3, 3] * [1, 1, 1.04]) for a in axes])  # wrong rotations, depth 4 % off
+    hyp[8, :3, :3] = R_true @ rotation_about_axis(np.array([0.0, 1.0, 1.0]), [np.radians(8.0)])[0]
+    box = np.array([[100.0, 60.0, 220.0, 180.0]])
+
+    def best_error(screen):
+        Tk, score = dh.refine_and_rank(depth, K, box, [BOX], hyp[None], 4, db, IcpConf(), screen=screen)
+        best = Tk[0, np.nanargmax(score[0])]
+        c = (np.trace(best[:3, :3].T @ R_true) - 1) / 2
+        return np.degrees(np.arccos(np.clip(c, -1, 1))), np.linalg.norm(best[:3, 3] - T[:3, 3])
+
+    rot, dt = best_error(12)
+    assert rot < 3.0 and dt < 3.0, (rot, dt)
+    assert best_error(0)[0] > 20.0
+
+
 @needs(YCBV)
 def test_ycbv_frames_rotations(tmp_path_factory):
     """Templates -> verification -> ICP + near-symmetry variants, picked by the visibility-aware

@@ -45,7 +45,10 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--refiner-iterations", type=click.IntRange(min=0), default=None, help="Refiner iterations [paper: 4].")
 @click.option("--top-k", type=click.IntRange(min=1), default=None,
               help="Template hypotheses per detection kept after verification; with depth, each goes through ICP "
-                   "and the best by depth and image agreement is kept [16].")
+                   "and the best by depth and image agreement is kept [12].")
+@click.option("--icp-screen", type=click.IntRange(min=0), default=None,
+              help="With depth: the first N verified hypotheses get a short ICP and the --top-k best of them by "
+                   "depth and image agreement the full one (0: the first --top-k directly) [32].")
 @click.option("--hypotheses", type=click.IntRange(min=1), default=None,
               help="Poses per detection to write: the CSV keeps the best, the runners-up (best first, at most "
                    "--top-k) go to OUT's sidecar NAME.hypotheses.csv for `cosy match --hypotheses` [1: no sidecar].")
@@ -64,8 +67,8 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
-             depth_refine, refiner_iterations, top_k, hypotheses, verify_top, rgb_refine, templates_dir, providers,
-             batch_size,
+             depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, templates_dir,
+             providers, batch_size,
              overwrite, quiet) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
@@ -78,7 +81,8 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
     coarse_method, coarse_model = _method_or_model(coarse, COARSE_METHODS)
     refiner_method, refiner_model = _method_or_model(refiner, REFINER_METHODS)
     c = estimate_stage.resolve_conf(conf, coarse=coarse_method, refiner=refiner_method, depth_refine=depth_refine,
-                                    refiner_iterations=refiner_iterations, top_k=top_k, verify_top=verify_top,
+                                    refiner_iterations=refiner_iterations, top_k=top_k, icp_screen=icp_screen,
+                                    verify_top=verify_top,
                                     hypotheses=hypotheses,
                                     rgb_refine=rgb_refine, providers=providers,
                                     batch_size=batch_size)

@@ -50,7 +50,7 @@ CONFS: dict[str, dict] = {
     "paper": {"detect": "default", "estimate": "paper", "match": "paper-norefit", "refine": None,
               "evaluate": "bop19"},
     # Quicker: fewer template hypotheses, fewer ICP iterations, no VSD (BOP19 AR from MSSD/MSPD).
-    "fast": {"detect": "default", "estimate": {"top_k": 3, "icp_iterations": 10}, "match": "paper",
+    "fast": {"detect": "default", "estimate": {"top_k": 3, "icp_screen": 0, "icp_iterations": 10}, "match": "paper",
              "refine": None, "evaluate": {"vsd": False}},
 }
 

@@ -8,7 +8,8 @@ with ``from_gt``) becomes one object candidate: label, the detector's score and 
    canonical pose) or ``templates`` (training-free retrieval of the top-k rendered views,
    :mod:`~cosy_cli.singleview.templates`);
    With templates, ``verify_top`` hypotheses are first re-ranked by rendering them against the
-   image (:mod:`~cosy_cli.singleview.verify`) and the ``top_k`` best kept;
+   image (:mod:`~cosy_cli.singleview.verify`) and the ``top_k`` best kept (with depth and
+   ``icp_screen`` > ``top_k``: the ``top_k`` best of the first ``icp_screen`` after a short ICP);
 2. with depth, ``depth_refine: icp`` first refines every coarse hypothesis against the observed
    depth (:mod:`~cosy_cli.singleview.icp`), adds the near-symmetry variants of the best (a box
    turned over, a mug turned about its body; :mod:`~cosy_cli.singleview.depth_hypotheses`) and
@@ -71,7 +72,8 @@ CONFS = {
         "refiner": "auto",            # network | none | auto
         "depth_refine": "auto",       # icp | none | auto
         "refiner_iterations": 4,      # paper: 4 at test time
-        "top_k": 16,                  # template hypotheses per detection kept for ICP (5 before verification)
+        "top_k": 12,                  # hypotheses per detection given the full ICP (5 before verification, 16 before the screen)
+        "icp_screen": 32,             # with depth: the first this many verified hypotheses get a short ICP; the top_k best go on (0: off)
         "batch_size": 32,             # crops per network call
         "providers": "cpu",           # onnxruntime: cpu | cuda
         "min_visib_fract": 0.1,       # from_gt: boxes of instances at least this visible
@@ -83,11 +85,12 @@ CONFS = {
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
-              "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
+              "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
               "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
-                      "top_k": 16, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
+                      "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
+                      "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1},
 }
 
@@ -100,8 +103,11 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     for k, allowed in choices.items():
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
-    for k in ("refiner_iterations", "top_k", "batch_size", "icp_iterations", "hypotheses"):
-        c[k] = int(c[k])
+    for k in ("refiner_iterations", "top_k", "icp_screen", "batch_size", "icp_iterations", "hypotheses"):
+        try:
+            c[k] = int(c[k])
+        except (TypeError, ValueError):
+            raise CosyError(f"estimate setting {k}: expected a whole number, got {c[k]!r}") from None
     if c["verify_top"] != "auto":
         try:
             c["verify_top"] = int(c["verify_top"])
@@ -116,8 +122,10 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError("estimate setting verify_top must be >= 0 (0: no verification by rendering)")
     if c["hypotheses"] < 1:
         raise CosyError("estimate setting hypotheses must be >= 1 (1: one pose per detection, no sidecar)")
-    if c["refiner_iterations"] < 0 or c["top_k"] < 1 or c["batch_size"] < 1 or c["icp_iterations"] < 1:
-        raise CosyError("estimate settings out of range (refiner iterations >= 0, top-k, batch size, ICP iterations >= 1)")
+    if c["refiner_iterations"] < 0 or c["top_k"] < 1 or c["batch_size"] < 1 or c["icp_iterations"] < 1 \
+            or c["icp_screen"] < 0:
+        raise CosyError("estimate settings out of range (refiner iterations, ICP screen >= 0; top-k, batch size, "
+                        "ICP iterations >= 1)")
     return c
 
 
@@ -312,15 +320,16 @@ class Estimator:
             # ICP, then pick by depth fit (visibility-aware) + image_weight x the image score re-evaluated
             # at the refined poses (when verified); more hypotheses where none fits the depth, and the
             # near-symmetry variants of the best (a turned-over box, a turned mug): dh.refine_and_rank
-            img_of, tiebreak, pool = None, None, hyp
+            img_of, tiebreak, pool, pool_score = None, None, hyp, None
             if verified:
                 def img_of(det, T_, src):
                     return self.verifier.score(ranked.obs, det, obj_ids[det], T_, ranked.prior[det, src])
-                pool = ranked.T_cam_obj
+                pool, pool_score = ranked.T_cam_obj, ranked.score
             else:
                 tiebreak = 1e-3 * hyp_score / max(float(np.abs(hyp_score).max()), 1e-9)
             Tk, fit = dh.refine_and_rank(depth, K, boxes, obj_ids, pool, k, self.db, icp_conf, image_score=img_of,
-                                         image_weight=c.get("image_weight", 1.0), tiebreak=tiebreak)
+                                         image_weight=c.get("image_weight", 1.0), tiebreak=tiebreak,
+                                         prior_score=pool_score, screen=c.get("icp_screen", 0) if verified else 0)
             fit = np.where(np.isfinite(fit), fit, -np.inf)
             best = fit.argmax(1)
             T = Tk[np.arange(N), best]
@@ -372,7 +381,10 @@ def describe(conf: dict) -> str:
         parts.append({"search": "RGB refinement", "contour": "contour alignment",
                       "search+contour": "RGB refinement + contour alignment"}[conf["rgb_refine"]])
     if conf["depth_refine"] == "icp":
-        parts.append("ICP on depth")
+        screened = conf["coarse"] == "templates" and conf.get("verify_top", 0) > 0 \
+            and conf.get("icp_screen", 0) > conf["top_k"]
+        parts.append(f"short ICP of {conf['icp_screen']}, the best {conf['top_k']} ICP on depth" if screened
+                     else "ICP on depth")
     if conf["refiner"] == "network" and conf["refiner_iterations"] > 0:
         parts.append(f"refiner x{conf['refiner_iterations']}")
     return " -> ".join(parts)

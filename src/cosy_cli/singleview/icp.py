@@ -74,6 +74,7 @@ class IcpConf:
     trim_start: float = 0.2         # initial inlier distance, fraction of the object diameter
     trim_end_mm: float = 4.0        # final inlier distance (mm); geometric decay start->end over the iterations
     align_depth: bool = True        # first slide the pose along its camera ray to match the observed depth
+    align_points: int = ALIGN_POINTS  # camera-facing model samples the depth alignment uses
     max_rotation_deg: float = 30.0  # divergence check: larger total change => keep the input pose, ok=False
     max_translation_frac: float = 0.5  # ... or translation change > this * diameter
     min_inliers: int = 30           # fewer final inliers => ok=False, input pose kept
@@ -311,10 +312,11 @@ def _stacked(surfaces) -> tuple[list, np.ndarray]:
     return [by_id[k] for k in uniq], rows
 
 
-def _align_depth(T: np.ndarray, surfaces, K: np.ndarray, depth: np.ndarray, tols: np.ndarray) -> np.ndarray:
+def _align_depth(T: np.ndarray, surfaces, K: np.ndarray, depth: np.ndarray, tols: np.ndarray,
+                 n_points: int = ALIGN_POINTS) -> np.ndarray:
     """Each pose of T (M, 4, 4) slid along the camera ray through its origin by the shift
     (|shift| < diameter) with the best score a^2 / (a + v) over its camera-facing model points
-    (the first ``ALIGN_POINTS`` of them) at their pixels: a points agree with the observed depth
+    (the first ``n_points`` of them) at their pixels: a points agree with the observed depth
     within ``tols`` (M,) mm, v lie in front of it by more than tol (the model would hide observed
     surface; points behind it are occluded and neutral). Weighting the agreement by its precision
     keeps a partly occluded object from being pulled onto its occluder. A coarse search in steps
@@ -333,8 +335,8 @@ def _align_depth(T: np.ndarray, surfaces, K: np.ndarray, depth: np.ndarray, tols
     X = np.matmul(np.stack([s.points for s in uniq])[rows], Rt) + t[:, None]  # (M, N, 3)
     facing = np.einsum("mni,mni->mn", np.matmul(np.stack([s.normals for s in uniq])[rows], Rt), X) \
         < -VISIBLE_COS * X[..., 2]
-    # the first ALIGN_POINTS facing samples (the samples are in random order: a uniform subset)
-    first = np.argsort(~facing, axis=1, kind="stable")[:, :ALIGN_POINTS]
+    # the first n_points facing samples (the samples are in random order: a uniform subset)
+    first = np.argsort(~facing, axis=1, kind="stable")[:, :n_points]
     X = np.take_along_axis(X, first[..., None], 1)  # (M, A, 3)
     pmask = np.take_along_axis(facing, first, 1)
     tols = np.asarray(tols, dtype=np.float64)
@@ -362,7 +364,7 @@ def _align_depth(T: np.ndarray, surfaces, K: np.ndarray, depth: np.ndarray, tols
         return np.where(valid, agree * agree / np.maximum(agree + violate, 1), -np.inf)  # agreement x precision
 
     todo = np.flatnonzero(live)
-    chunk = max(1, ALIGN_CHUNK // (max(int(n_coarse.max()), 17) * ALIGN_POINTS))
+    chunk = max(1, ALIGN_CHUNK // (max(int(n_coarse.max()), 17) * X.shape[1]))
     for c0 in range(0, len(todo), chunk):
         idx = todo[c0:c0 + chunk]
         steps = np.arange(int(n_coarse[idx].max()))
@@ -569,7 +571,8 @@ def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = I
     cand = np.flatnonzero((n_box >= need) & np.all(np.isfinite(T_in), axis=(1, 2)) & (T_in[:, 2, 3] > 0))
     if len(cand):
         cs = [surfaces[i] for i in cand]
-        Ta = _align_depth(T_in[cand], cs, K, depth, tols[cand]) if conf.align_depth else T_in[cand].copy()
+        Ta = _align_depth(T_in[cand], cs, K, depth, tols[cand], conf.align_points) if conf.align_depth \
+            else T_in[cand].copy()
         # the observed points near each aligned object: the first max_points of them (a uniform subsample)
         radius = np.array([s.radius + max(conf.trim_start * s.diameter, conf.trim_end_mm) for s in cs])
         centre = np.einsum("mij,mj->mi", Ta[:, :3, :3], np.array([s.centre for s in cs])) + Ta[:, :3, 3]
