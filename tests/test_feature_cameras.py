@@ -14,7 +14,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from cosy_cli.evaluation.pose_error import re as angle_deg  # noqa: E402  (rotation error, degrees)
-from realdata import LMO, gt_cameras, needs  # noqa: E402
+from realdata import LMO, YCBV, gt_cameras, needs  # noqa: E402
 
 warnings.filterwarnings("ignore", message=".*orthonormal only.*")
 
@@ -86,6 +86,60 @@ def test_relative_pose_of_two_real_lmo_views_matches_the_gt_derived_one():
     q = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, a, ds.read_rgb(s, a), cams[a].K)
     assert q is None or angle_deg(q.T_a_b[:3, :3], np.eye(3)) < 1.0
 
+
+
+def test_parallax_tells_one_viewpoint_from_several():
+    """parallax_px: matched points of a scene with depth seen from one point under any rotation fit
+    one homography (0 px); seen from points 5 % of the depth apart, they do not (tens of px); a
+    flat scene is one homography from anywhere (0 px)."""
+    from cosy_cli.multiview import features as ft
+
+    rng = np.random.default_rng(0)
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    X = np.c_[rng.uniform(-300, 300, (300, 2)), rng.uniform(600, 1500, 300)]  # camera a frame, mm
+    flat = np.c_[X[:, :2], np.full(300, 1000.0)]
+
+    def project(P, T_b_a):
+        q = (P @ T_b_a[:3, :3].T + T_b_a[:3, 3]) @ K.T
+        return q[:, :2] / q[:, 2:]
+
+    xa = project(X, np.eye(4))
+    turned = _pose([0.2, 1, 0.1], 12.0, [0.0, 0.0, 0.0])
+    moved = _pose([0.2, 1, 0.1], 12.0, [50.0, 0.0, 0.0])
+    assert ft.parallax_px(xa, project(X, turned)) < 0.5
+    assert ft.parallax_px(xa, project(X, moved)) > 10.0
+    assert ft.parallax_px(project(flat, np.eye(4)), project(flat, moved)) < 0.5
+
+
+def test_wide_views_reads_the_parallax_of_the_feature_pairs():
+    from cosy_cli.multiview.refine_stage import WIDE_PARALLAX_PX, wide_views
+
+    def stats(*px):
+        return {"feature_cameras": {"views": {str(k): {"inliers": 50, "used": True, "parallax_px": p}
+                                              for k, p in enumerate(px)}}}
+
+    assert not wide_views({}) and not wide_views(stats(1.0, 2.0))
+    assert wide_views(stats(1.0, WIDE_PARALLAX_PX + 1.0))
+
+
+@needs(LMO, YCBV)
+def test_parallax_of_real_views():
+    """Real image pairs: two YCB-V frames (the camera moved about 4 mm) stay under the threshold that
+    lets views with depth into the leftover check; two LM-O views of one arrangement are far above."""
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.multiview import features as ft
+    from cosy_cli.multiview.refine_stage import WIDE_PARALLAX_PX
+
+    cache = ft.FeatureCache()
+    ds = BopDataset(YCBV, "train_real")
+    cams = ds.scene_camera(0)
+    p = ft.relative_pose(cache, ("y", 1), ds.read_rgb(0, 1), cams[1].K, ("y", 10), ds.read_rgb(0, 10), cams[10].K)
+    assert p is not None and p.parallax_px < WIDE_PARALLAX_PX / 2
+    ds = BopDataset(LMO, "test")
+    cams = ds.scene_camera(3)
+    q = ft.relative_pose(cache, ("l", 266), ds.read_rgb(3, 266), cams[266].K, ("l", 277), ds.read_rgb(3, 277),
+                         cams[277].K)
+    assert q is not None and q.parallax_px > 4 * WIDE_PARALLAX_PX
 
 @needs(LMO)
 def test_refine_records_the_feature_cameras_and_none_is_the_objects_alone(tmp_path):

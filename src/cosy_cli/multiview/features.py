@@ -44,6 +44,9 @@ import numpy as np
 from ..geometry.poses import invert, rotation_angle
 
 
+PARALLAX_QUANTILE = 0.75  # parallax_px: this quantile of the matches' distances to the best homography
+
+
 @dataclass
 class FeatureConf:
     """Settings (chosen on the odd LM-O dev scenes)."""
@@ -59,11 +62,14 @@ class FeatureConf:
 @dataclass
 class PairPose:
     """The relative pose of two views from their images: ``T_a_b`` (4, 4) with a unit translation
-    (direction only: the images do not give the scale), the number of inlier matches."""
+    (direction only: the images do not give the scale), the number of inlier matches, and the
+    parallax: the median distance (px in view b) between the inliers of b and where view a's would
+    be seen from b after the rotation alone (0 for views from one point, whatever their rotation)."""
 
     T_a_b: np.ndarray
     n_inliers: int
     n_matches: int
+    parallax_px: float = 0.0
 
 
 class FeatureCache:
@@ -111,10 +117,28 @@ def relative_pose(cache: FeatureCache, key_a, rgb_a: np.ndarray, K_a: np.ndarray
                                    threshold=c.ransac_px / float(K_a[0, 0]))
     if E is None or E.shape != (3, 3):
         return None
-    n_in, R, t, _ = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask)
+    n_in, R, t, inl = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask)
     T_b_a = np.eye(4)  # recoverPose: x_b = R x_a + t
     T_b_a[:3, :3], T_b_a[:3, 3] = R, np.asarray(t, dtype=np.float64).reshape(3)
-    return PairPose(invert(T_b_a), int(n_in), int(len(pairs)))
+    return PairPose(invert(T_b_a), int(n_in), int(len(pairs)), parallax_px(pa[pairs[:, 0]], pb[pairs[:, 1]]))
+
+
+def parallax_px(xa: np.ndarray, xb: np.ndarray) -> float:
+    """How far matched points xa (n, 2) of view a and xb (n, 2) of view b (px) are from being one
+    homography apart: the PARALLAX_QUANTILE quantile of the distances (px) between xb and the best
+    homography's image of xa (RANSAC, 3 px). Views taken from one point (any rotation) give a few
+    px at most, whatever the scene; views from points apart give tens to hundreds on a scene with
+    depth (a flat scene alone gives none: one plane is one homography)."""
+    import cv2
+
+    if len(xa) < 8:
+        return 0.0
+    H, _ = cv2.findHomography(xa.reshape(-1, 1, 2), xb.reshape(-1, 1, 2), cv2.RANSAC, 3.0)
+    if H is None:
+        return float("inf")
+    p = np.concatenate([xa, np.ones((len(xa), 1))], 1) @ H.T
+    d = np.linalg.norm(p[:, :2] / np.where(np.abs(p[:, 2:]) > 1e-9, p[:, 2:], 1e-9) - xb, axis=1)
+    return float(np.quantile(d, PARALLAX_QUANTILE))
 
 
 def feature_camera(T_world_ref: np.ndarray, T_world_cam: np.ndarray, pair: PairPose | None,

@@ -57,7 +57,8 @@ Output folder (built atomically):
     MSPD) multi-view 0.391 -> 0.399 (single view 0.376); held-out even scenes 0.365 -> 0.369 (single
     view 0.372); synthetic candidates and YCB-V unchanged (the module's docstring).
 
-    Leftovers (``image_check_leftovers``, default on with the image check; RGB views without depth):
+    Leftovers (``image_check_leftovers``, default on with the image check; RGB views, and views
+    with depth when the group's views are distinct viewpoints: :func:`wide_views`):
     the single-view candidates that no refined object explains are clustered across the group's
     placed views (same label; each one's centre, carried through the cameras, projects within
     its size of the other's) and each cluster member's pose is scored in every member's view;
@@ -221,6 +222,17 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
 
 OUTPUTS = ("scene+candidates", "scene")
 FEATURE_CAMERAS = ("leftovers", "scene", "none")
+
+
+WIDE_PARALLAX_PX = 5.0  # views with depth join the leftover check when an image pair shows this much parallax
+
+
+def wide_views(stats: dict) -> bool:
+    """Whether a group's views are distinct viewpoints: an image pair with the gauge view shows a
+    parallax (:func:`~cosy_cli.multiview.features.parallax_px`) of at least ``WIDE_PARALLAX_PX``.
+    The 10 YCB-V frames (one viewpoint in effect): 0.9-1.3 px; real LM-O dev pairs: 13-455 px."""
+    views = stats.get("feature_cameras", {}).get("views", {})
+    return any(v.get("parallax_px", 0.0) >= WIDE_PARALLAX_PX for v in views.values())
 
 
 def leftover_check_on(conf: dict, checker) -> bool:
@@ -542,11 +554,10 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         unplaced = [v for v in im_ids if v not in placed]
     views = list(placed)
     vidx = {v: k for k, v in enumerate(views)}
-    # feature cameras: for the scene ("scene"), or for the leftover check, which runs on RGB views
-    # without depth ("leftovers")
+    # feature cameras: for the scene ("scene"), or for the leftover check ("leftovers"; with depth
+    # they also tell whether the views are distinct viewpoints: wide_views)
     wanted = not known_cameras and (conf["feature_cameras"] == "scene" or (
-        conf["feature_cameras"] == "leftovers" and leftover_check_on(conf, checker)
-        and any(ds.depth_path(s, v) is None for v in im_ids)))
+        conf["feature_cameras"] == "leftovers" and leftover_check_on(conf, checker)))
     from .image_check import images_available
 
     use_features = wanted and len(views) > 1 and images_available(ds, s, views)
@@ -789,7 +800,8 @@ def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams:
         c_ref = np.array([T_cam_cand[np.flatnonzero((cand_obj == o) & (cv == g))[0], :3, 3] for o in both]).reshape(-1, 3)
         c_cam = np.array([T_cam_cand[np.flatnonzero((cand_obj == o) & (cv == k))[0], :3, 3] for o in both]).reshape(-1, 3)
         T = ft.feature_camera(Twc[g], Twc[k], pair, cache.conf, c_ref, c_cam)
-        info[str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None}
+        info[str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None,
+                        "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2)}
         if T is not None:
             Twc[vidx[v]] = T
             fixed.append(vidx[v])
@@ -835,6 +847,7 @@ def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray,
         pair = ft.relative_pose(cache, gauge, rgb(gauge), cams[gauge].K, v, rgb(v), cams[v].K)
         T = ft.camera_without_objects(T_world_gauge, pair, cache.conf, c_ref, c_cam)
         fc["views"][str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None,
+                               "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2),
                                "unplaced_by_the_objects": True}
         if T is not None:
             out[v] = T
@@ -901,14 +914,17 @@ def _check_leftovers(checker, ds: BopDataset, r: dict, cands: bop.PoseResults, d
 
     t0 = time.perf_counter()
     s = int(r["scene_id"])
-    # RGB views only: with depth, the single-view pick (depth fit + image) is the stronger judge (on
-    # the YCB-V frames the check cost 0.03 AR with the image score, 0.06 with depth + image).
+    # RGB views, and views with depth when the group's views are distinct viewpoints (wide_views):
+    # from one viewpoint the single-view pick (depth fit + image) is the stronger judge (on the YCB-V
+    # frames the check cost 0.03 AR with the image score, 0.06 with depth + image); from several, the
+    # views' images settle what one view's depth cannot (a proxy RGB-D LM-O, see the README).
     # Cameras: those from image features where refine found them (feature_cameras "leftovers").
     lc = r.get("_feature_cams") or {}
     placed = {int(c["im_id"]): np.asarray(lc.get(int(c["im_id"]), c["T_world_cam"]), dtype=np.float64)
               for c in r["cameras"]}
     placed.update({int(v): np.asarray(T, dtype=np.float64) for v, T in lc.items()})  # views only features placed
-    placed = {v: T for v, T in placed.items() if ds.depth_path(s, v) is None}
+    wide = wide_views(r.get("stats", {}))
+    placed = {v: T for v, T in placed.items() if wide or ds.depth_path(s, v) is None}
     fb = [x for x in fallback_candidates(r, cands, diameters, conf, score_min) if x[1] in placed]
     if len({v for _, v, _, _ in fb}) < 2:
         return
