@@ -8,6 +8,10 @@ Data (read from ``../shared/realdata/``, skipped with a message when absent):
   own candidates (``cosy estimate --from-gt``, RGB only) when a file is given.
 * ``ycbv_0000/``: YCB-V frames (one viewpoint in effect), cosy's own candidates (RGB-D) when a
   file is given, and 1 % / 2 deg synthetic candidates.
+* the proxy RGB-D LM-O of ``bench_realdata_singleview.py --data lmo-depth`` (the real RGB,
+  depth rendered from the GT: :func:`bench_realdata_singleview.prepare_lmo_depth`), cosy's own
+  RGB-D candidates on it when a file is given (``--own-lmo-depth``; made with ``cosy estimate
+  --dataset WORK/lmo_depth_proxy --from-gt`` or by that benchmark).
 
 Settings were chosen on the odd scenes of ``lmo_dev`` with seeds 100+; the figures reported are
 on the even scenes (held out) and on all scenes, with seeds 0, 1, 2 (mean over seeds).
@@ -15,7 +19,7 @@ on the even scenes (held out) and on all scenes, with seeds 0, 1, 2 (mean over s
 Usage::
 
     python benchmarks/bench_realdata_multiview.py [--seeds 0,1,2] [--subset even|odd|all]
-        [--own-lmo CANDS.csv] [--own-ycbv CANDS.csv] [--own-hypotheses 1,3,5]
+        [--own-lmo CANDS.csv] [--own-ycbv CANDS.csv] [--own-lmo-depth CANDS.csv] [--own-hypotheses 1,3,5]
         [--set match.KEY=V --set refine.KEY=V]
         [--kinds 1/2,3/5,5/8g] [--work DIR] [--image-check auto|on|none]
 
@@ -152,6 +156,11 @@ def main(argv=None) -> None:
                     help="with --own-lmo/--own-ycbv: match.hypotheses values to compare, e.g. 1,3,5 (the CSV's "
                          "sidecar from cosy estimate --hypotheses N)")
     ap.add_argument("--own-ycbv", type=Path, default=None, help="cosy estimate --from-gt candidates on ycbv_0000")
+    ap.add_argument("--own-lmo-depth", type=Path, default=None,
+                    help="cosy estimate --from-gt candidates on the proxy RGB-D LM-O (made in "
+                         "--proxy-dir by bench_realdata_singleview.prepare_lmo_depth when missing)")
+    ap.add_argument("--proxy-dir", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv"
+                    / "lmo_depth_proxy", help="where the proxy RGB-D LM-O is (or is made)")
     ap.add_argument("--set", action="append", default=[], help="match.KEY=VALUE or refine.KEY=VALUE")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--no-ycbv", action="store_true")
@@ -204,6 +213,11 @@ def main(argv=None) -> None:
 
     if args.own_lmo is not None:
         own_rows("lmo_dev", lmo, "test", args.own_lmo, subsets, "lmo")
+    if args.own_lmo_depth is not None:
+        from bench_realdata_singleview import prepare_lmo_depth
+
+        proxy = prepare_lmo_depth(lmo, args.proxy_dir)
+        own_rows("lmo_dev proxy RGB-D", proxy, "test", args.own_lmo_depth, subsets, "lmod")
     ycbv = args.ycbv or REALDATA / "ycbv_0000"
     if not args.no_ycbv and ycbv.is_dir():
         if not any(ycbv.glob("train_real/*/scene_gt_info.json")):  # the shared copy has none: make it
