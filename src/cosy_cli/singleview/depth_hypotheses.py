@@ -61,6 +61,7 @@ VARIANT_ICP_ITERATIONS = 10  # the variants' ICP iterations
 SCREEN_ITERATIONS = 6    # estimate (icp_screen > top_k): the short ICP that screens the hypotheses: iterations
 SCREEN_POINTS = 500      # ... and observed points per box
 SCREEN_ALIGN_POINTS = 150  # ... and model samples in its depth alignment
+SCREEN_SAMPLES = 500     # ... and surface samples of the depth score that ranks its results
 RETRY_BELOW = None      # estimate: detections whose best depth score is below this ICP their next top_k hypotheses
                         # too (None: off; 0.25 cost 0.04 BOP19 AR on YCB-V frames 1-5: one brick turned by 90 deg)
 PICK = "visible"        # estimate: pick by visible_depth_score ("fit": the ICP module's depth_fit_score)
@@ -151,12 +152,14 @@ def expand(T_cam_obj: np.ndarray, obj_ids: np.ndarray, db) -> tuple[np.ndarray, 
     return np.concatenate(outs), np.concatenate(rows)
 
 
-def visible_depth_score(depth_mm, K, obj_ids, T_cam_obj, db, tol_mm=None, terms: bool = False):
+def visible_depth_score(depth_mm, K, obj_ids, T_cam_obj, db, tol_mm=None, terms: bool = False,
+                        samples: int = SAMPLES):
     """Visibility-aware depth consistency (see the module docstring), (M,), higher = better, at most 1.
 
     depth_mm (H, W) mm (0 = none); K (3, 3); obj_ids (M,); T_cam_obj (M, 4, 4) mm; tol_mm: None
     (per object max(0.02 x diameter, 3 mm)), a number or (M,). With ``terms`` also a dict of the
-    per-pose counts (agree, violation, occluded, unknown, visible)."""
+    per-pose counts (agree, violation, occluded, unknown, visible). ``samples``: surface samples
+    used (a uniform subset of the ICP module's)."""
     from .icp import VISIBLE_COS, _surface
 
     depth = np.asarray(depth_mm, dtype=np.float64)
@@ -169,9 +172,9 @@ def visible_depth_score(depth_mm, K, obj_ids, T_cam_obj, db, tol_mm=None, terms:
         z0 = np.zeros(0)
         return (z0, {}) if terms else z0
     surfs = [_surface(db[int(o)]) for o in ids]
-    step = max(1, len(surfs[0].points) // SAMPLES)
-    P = np.stack([s.points[::step][:SAMPLES] for s in surfs])  # (M, n, 3)
-    Nr = np.stack([s.normals[::step][:SAMPLES] for s in surfs])
+    step = max(1, len(surfs[0].points) // samples)
+    P = np.stack([s.points[::step][:samples] for s in surfs])  # (M, n, 3)
+    Nr = np.stack([s.normals[::step][:samples] for s in surfs])
     if tol_mm is None:
         tol = np.array([max(0.02 * s.diameter, 3.0) for s in surfs])
     else:
@@ -221,7 +224,8 @@ def visible_depth_score(depth_mm, K, obj_ids, T_cam_obj, db, tol_mm=None, terms:
     return score
 
 
-def pick_score(depth_mm, K, obj_ids, T_cam_obj, db, image_score=None, image_weight: float = 1.0) -> np.ndarray:
+def pick_score(depth_mm, K, obj_ids, T_cam_obj, db, image_score=None, image_weight: float = 1.0,
+               samples: int = SAMPLES) -> np.ndarray:
     """The depth path's ranking score of poses (M,): :func:`visible_depth_score` (``PICK`` "fit":
     the ICP module's depth_fit_score) plus ``image_weight`` x the image score (M,) (NaN counts 0)
     when given."""
@@ -230,7 +234,7 @@ def pick_score(depth_mm, K, obj_ids, T_cam_obj, db, image_score=None, image_weig
 
         s = depth_fit_score(depth_mm, K, obj_ids, T_cam_obj, db)
     else:
-        s = visible_depth_score(depth_mm, K, obj_ids, T_cam_obj, db)
+        s = visible_depth_score(depth_mm, K, obj_ids, T_cam_obj, db, samples=samples)
     if image_score is not None:
         img = np.asarray(image_score, dtype=np.float64).reshape(-1)
         s = s + image_weight * np.where(np.isfinite(img), img, 0.0)
@@ -276,7 +280,7 @@ def add_variants(depth_mm, K, boxes, obj_ids, T, score, db, *, image_score=None,
     V, src, det = V[order], src[order], det[order]
     hsrc = top.reshape(-1)[src]
     conf = icp_conf or IcpConf(iterations=VARIANT_ICP_ITERATIONS, trim_start=0.08)
-    r = refine_with_depth(depth_mm, K, np.asarray(boxes, dtype=np.float64)[det], ids[det], V, db, conf)
+    r = refine_with_depth(depth_mm, K, np.asarray(boxes, dtype=np.float64)[det], ids[det], V, db, conf, scores=False)
     img = None if image_score is None else image_score(det, r.T_cam_obj, hsrc)
     sv = pick_score(depth_mm, K, ids[det], r.T_cam_obj, db, img, image_weight) - VARIANT_MARGIN
     counts = np.bincount(det, minlength=N)
@@ -301,8 +305,8 @@ def refine_and_rank(depth_mm, K, boxes, obj_ids, hyp, k: int, db, icp_conf, *, i
     ICP (``SCREEN_ITERATIONS`` iterations on ``SCREEN_POINTS`` points per box), ranked by
     :func:`pick_score` + image_weight x ``prior_score`` (N, n) (their image scores before ICP, when
     given), and the k best go on to the full ICP from where the short one left them (proxy RGB-D
-    LM-O odd scenes: BOP19 AR 0.671 -> 0.720 with 32 screened and 12 kept, for 12 % more time;
-    synthetic dev scenes 0.920 -> 0.933; YCB-V frames 1-5 0.625 -> 0.554: one mug and two brick
+    LM-O odd scenes: BOP19 AR 0.671 -> 0.703 with 32 screened and 12 kept, about the same time;
+    synthetic dev scenes 0.920 -> 0.937; YCB-V frames 1-5 0.625 -> 0.554: one mug and two brick
     flips, one box flip the other way). Detections whose best depth score stays below ``RETRY_BELOW`` (no hypothesis fits
     the depth: all of them wrong, or ICP lost them) refine and score their next ``k`` hypotheses
     too; then the near-symmetry variants of every detection's ``N_EXPAND`` best are added
@@ -319,7 +323,7 @@ def refine_and_rank(depth_mm, K, boxes, obj_ids, hyp, k: int, db, icp_conf, *, i
 
     def run(rows, cols, start=None):  # ICP + scores of hypotheses (rows, cols) -> (T (len, 4, 4), depth score, total)
         r = refine_with_depth(depth_mm, K, boxes[rows], ids[rows], hyp[rows, cols] if start is None else start, db,
-                              icp_conf if start is None else replace(icp_conf, align_depth=False))
+                              icp_conf if start is None else replace(icp_conf, align_depth=False), scores=False)
         d = pick_score(depth_mm, K, ids[rows], r.T_cam_obj, db)
         img = None if image_score is None else image_score(rows, r.T_cam_obj, cols)
         tot = d + (0.0 if img is None else image_weight * np.where(np.isfinite(img), img, 0.0)) + tb[rows, cols]
@@ -332,8 +336,8 @@ def refine_and_rank(depth_mm, K, boxes, obj_ids, hyp, k: int, db, icp_conf, *, i
         rs, cs = np.repeat(np.arange(N), ks), np.tile(np.arange(ks), N)
         short = refine_with_depth(depth_mm, K, boxes[rs], ids[rs], hyp[rs, cs], db,
                                   replace(icp_conf, iterations=SCREEN_ITERATIONS, max_points=SCREEN_POINTS,
-                                          align_points=SCREEN_ALIGN_POINTS))
-        pre = pick_score(depth_mm, K, ids[rs], short.T_cam_obj, db).reshape(N, ks)
+                                          align_points=SCREEN_ALIGN_POINTS), scores=False)
+        pre = pick_score(depth_mm, K, ids[rs], short.T_cam_obj, db, samples=SCREEN_SAMPLES).reshape(N, ks)
         if prior_score is not None:
             pre = pre + image_weight * np.nan_to_num(np.asarray(prior_score, dtype=np.float64)[:, :ks], nan=-1.0)
         cols = np.argsort(-pre, axis=1, kind="stable")[:, :k].reshape(-1)

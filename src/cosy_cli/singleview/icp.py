@@ -531,13 +531,15 @@ def _within_change(T0: np.ndarray, Ta: np.ndarray, T: np.ndarray, surfaces, conf
     return ok
 
 
-def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = IcpConf()) -> DepthRefineResult:
+def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = IcpConf(), *,
+                      scores: bool = True) -> DepthRefineResult:
     """Refine candidate poses with a depth map (trimmed point-to-plane ICP, see the module doc).
 
     depth_mm (H, W) float mm (0 = no measurement); K (3, 3); boxes (M, 4) x1, y1, x2, y2 px in
     pixel-edge coordinates (BOP bbox convention, x2 = x + w); obj_ids (M,); T_init (M, 4, 4)
     T_cam_obj mm; db: cosy_cli.objects.ObjectDatabase. Several rows may share a box (hypotheses
-    of one detection). Deterministic under ``conf.seed``. All candidates are refined together
+    of one detection). Deterministic under ``conf.seed``. ``scores`` False: inlier_frac and
+    fit_score are left NaN (callers that score the poses their own way). All candidates are refined together
     (vectorised over candidates and points; the loops are over distinct boxes and iterations).
     """
     depth = np.asarray(depth_mm)
@@ -603,6 +605,8 @@ def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = I
             good &= _within_change(T_in[rows], Ta[go], T, gs, conf)
             T_out[rows[good]], ok[rows[good]] = T[good], True
 
+    if not scores:
+        return DepthRefineResult(T_out, ok, np.full(M, np.nan), rmse, np.full(M, np.nan))
     agree, visible, occluded = _agreement(depth, K, surfaces, T_out, tols)
     inlier_frac = np.where(visible > 0, agree / np.maximum(visible, 1), 0.0)
     denom = visible - occluded
