@@ -398,7 +398,8 @@ class _Batch:
     def __init__(self, surfaces, reach: np.ndarray):
         uniq, rows = _stacked(surfaces)
         self.rows = rows
-        self.n = N_SURFACE
+        sizes = [len(s.points) for s in uniq]
+        self.start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)[rows]  # each row's first sample
         self.points = np.concatenate([s.points_t for s in uniq], 1).astype(ICP_DTYPE)  # (3, U * N)
         self.normals = np.concatenate([s.normals_t for s in uniq], 1).astype(ICP_DTYPE)
         self.n_dot_p = np.concatenate([s.n_dot_p for s in uniq]).astype(ICP_DTYPE)  # (U * N,)
@@ -417,7 +418,7 @@ class _Batch:
         ijk = np.rint((Q - self.origin[sel][:, :, None]) * self.inv_h[sel][:, None, None])
         np.clip(ijk, 0.0, self.top[sel][:, :, None], out=ijk)
         cell = np.einsum("mi,min->mn", self.strides[sel], ijk).astype(np.intp) + self.offset[sel][:, None]
-        return self.index.take(cell) + (self.rows[sel] * self.n)[:, None]
+        return self.index.take(cell) + self.start[sel][:, None]
 
 
 def _pairs(T, Qc, valid, batch: _Batch, sel, trim):
