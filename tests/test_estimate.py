@@ -137,6 +137,13 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
     assert r.exit_code == 2 and "sometimes" in r.output
     with pytest.raises(Exception, match="image_weight"):
         estimate_stage.resolve_conf("default", image_weight=-1)
+    from cosy_cli.errors import CosyError
+
+    with pytest.raises(CosyError, match="icp_screen: expected a whole number, got 'many'"):
+        estimate_stage.resolve_conf("default", icp_screen="many")
+    with pytest.raises(CosyError, match="ICP screen >= 0"):
+        estimate_stage.resolve_conf("default", icp_screen=-1)
+    assert estimate_stage.resolve_conf("default", icp_screen="8")["icp_screen"] == 8  # `--set` values arrive as text
     c = estimate_stage.decide(estimate_stage.resolve_conf("default", coarse="templates", refiner="none"),
                               coarse_model=None, refiner_model=None, has_depth=False)
     assert c["rgb_refine"] == estimate_stage.RGB_REFINE_AUTO == "contour"
