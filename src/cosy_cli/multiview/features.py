@@ -63,8 +63,8 @@ class FeatureConf:
 class PairPose:
     """The relative pose of two views from their images: ``T_a_b`` (4, 4) with a unit translation
     (direction only: the images do not give the scale), the number of inlier matches, and the
-    parallax: the median distance (px in view b) between the inliers of b and where view a's would
-    be seen from b after the rotation alone (0 for views from one point, whatever their rotation)."""
+    parallax of the matches (:func:`parallax_px`, px; about 0 for views from one point, whatever
+    their rotation)."""
 
     T_a_b: np.ndarray
     n_inliers: int
@@ -117,7 +117,7 @@ def relative_pose(cache: FeatureCache, key_a, rgb_a: np.ndarray, K_a: np.ndarray
                                    threshold=c.ransac_px / float(K_a[0, 0]))
     if E is None or E.shape != (3, 3):
         return None
-    n_in, R, t, inl = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask)
+    n_in, R, t, _ = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask)
     T_b_a = np.eye(4)  # recoverPose: x_b = R x_a + t
     T_b_a[:3, :3], T_b_a[:3, 3] = R, np.asarray(t, dtype=np.float64).reshape(3)
     return PairPose(invert(T_b_a), int(n_in), int(len(pairs)), parallax_px(pa[pairs[:, 0]], pb[pairs[:, 1]]))

@@ -800,8 +800,7 @@ def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams:
         c_ref = np.array([T_cam_cand[np.flatnonzero((cand_obj == o) & (cv == g))[0], :3, 3] for o in both]).reshape(-1, 3)
         c_cam = np.array([T_cam_cand[np.flatnonzero((cand_obj == o) & (cv == k))[0], :3, 3] for o in both]).reshape(-1, 3)
         T = ft.feature_camera(Twc[g], Twc[k], pair, cache.conf, c_ref, c_cam)
-        info[str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None,
-                        "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2)}
+        info[str(v)] = _pair_record(pair, T is not None)
         if T is not None:
             Twc[vidx[v]] = T
             fixed.append(vidx[v])
@@ -817,6 +816,12 @@ def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams:
     S0 = np.stack([geo[obj_label[o]].symmetries[k] for o, k in zip(cand_obj, sym)])
     return ba.bundle_adjust(Twc, Two, cv, cand_obj, T_cam_cand, K, obj_label, geo, iterations=conf["iterations"],
                             loss_threshold_px=conf["loss_threshold_px"], fixed_views=sorted(fixed), symmetries=S0)
+
+
+def _pair_record(pair, used: bool) -> dict:
+    """scene.json's record of a view's image pair with the gauge view (``stats.feature_cameras``)."""
+    return {"inliers": 0 if pair is None else pair.n_inliers, "used": used,
+            "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2)}
 
 
 def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
@@ -846,9 +851,7 @@ def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray,
         c_cam = np.array([cands.T_cam_obj[here[o]][:3, 3] for o in both]).reshape(-1, 3)
         pair = ft.relative_pose(cache, gauge, rgb(gauge), cams[gauge].K, v, rgb(v), cams[v].K)
         T = ft.camera_without_objects(T_world_gauge, pair, cache.conf, c_ref, c_cam)
-        fc["views"][str(v)] = {"inliers": 0 if pair is None else pair.n_inliers, "used": T is not None,
-                               "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2),
-                               "unplaced_by_the_objects": True}
+        fc["views"][str(v)] = {**_pair_record(pair, T is not None), "unplaced_by_the_objects": True}
         if T is not None:
             out[v] = T
             out.setdefault(gauge, T_world_gauge)

@@ -62,9 +62,9 @@ GRID_STEPS = 48  # nearest-sample lookup grid: voxel side = diameter / GRID_STEP
 GRID_MARGIN = 0.25  # ... covering the model's box grown by this fraction of the diameter (at least)
 STEP_TOL = 0.02  # a step moving the model less than this fraction of the trim distance has converged
 STEP_SKIP = 3  # ... and the trim schedule then skips this many levels
-ALIGN_CHUNK = 200_000
-ICP_CHUNK = 32
-ICP_DTYPE = np.float32  # the ICP's point arrays (the poses and the 6x6 systems stay float64)  # ICP problems solved together  # depth alignment: poses per batch such that poses x shifts x points stays below this
+ALIGN_CHUNK = 200_000  # depth alignment: poses per batch such that poses x shifts x points stays below this
+ICP_CHUNK = 32  # ICP problems solved together (their arrays stay in cache)
+ICP_DTYPE = np.float32  # the ICP's point arrays (the poses and the 6x6 systems stay float64)
 
 
 @dataclass
@@ -195,12 +195,10 @@ def _agreement(depth_mm, K, surfaces, T_cam_obj, tol):
     """Counts per row: (agree, visible, occluded) over the camera-facing model points inside the image."""
     depth = np.asarray(depth_mm)
     H, W = depth.shape
-    uniq: dict[int, int] = {}
-    rows = np.array([uniq.setdefault(id(s), len(uniq)) for s in surfaces])
-    by_id = {id(s): s for s in surfaces}
-    P = np.stack([by_id[k].points for k in uniq])[rows]  # (M, N, 3)
-    NP = np.stack([by_id[k].n_dot_p for k in uniq])[rows]  # (M, N)
-    Nrm = np.stack([by_id[k].normals for k in uniq])[rows]
+    uniq, rows = _stacked(surfaces)
+    P = np.stack([s.points for s in uniq])[rows]  # (M, N, 3)
+    NP = np.stack([s.n_dot_p for s in uniq])[rows]  # (M, N)
+    Nrm = np.stack([s.normals for s in uniq])[rows]
     R, t = T_cam_obj[:, :3, :3], T_cam_obj[:, :3, 3]
     KR = K @ R
     X = np.matmul(P, np.swapaxes(KR, 1, 2)) + (t @ K.T)[:, None]  # (M, N, 3): (u z, v z, z)
@@ -397,7 +395,6 @@ class _Batch:
 
     def __init__(self, surfaces, reach: np.ndarray):
         uniq, rows = _stacked(surfaces)
-        self.rows = rows
         sizes = [len(s.points) for s in uniq]
         self.start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)[rows]  # each row's first sample
         self.points = np.concatenate([s.points_t for s in uniq], 1).astype(ICP_DTYPE)  # (3, U * N)
@@ -564,12 +561,10 @@ def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = I
     # each distinct box's points and normals (6, n), in a seeded random order
     keys, box_of = np.unique(boxes, axis=0, return_inverse=True)
     box_of = box_of.reshape(-1)
-    first_row = np.unique(box_of, return_index=True)[1]
-    pts_of = []
-    for b in np.argsort(first_row, kind="stable"):  # numbered in order of first appearance, as the seeds
+    pts_of = {}
+    for seed, b in enumerate(np.argsort(np.unique(box_of, return_index=True)[1], kind="stable")):  # by first row
         pts = _box_points(depth, K, keys[b])
-        pts_of.append((b, pts.take(np.random.default_rng([conf.seed, len(pts_of)]).permutation(pts.shape[1]), axis=1)))
-    pts_of = dict(pts_of)
+        pts_of[b] = pts.take(np.random.default_rng([conf.seed, seed]).permutation(pts.shape[1]), axis=1)
     n_box = np.array([pts_of[b].shape[1] for b in box_of])
     cand = np.flatnonzero((n_box >= need) & np.all(np.isfinite(T_in), axis=(1, 2)) & (T_in[:, 2, 3] > 0))
     if len(cand):
@@ -595,15 +590,15 @@ def refine_with_depth(depth_mm, K, boxes, obj_ids, T_init, db, conf: IcpConf = I
             valid = np.arange(n)[None] < counts[go][:, None]
             for j, r in enumerate(go):
                 Qc[j, :, :counts[r]] = near_of[r][1]
-            rows = cand[go]
+            rows, Tg = cand[go], Ta[go]
             gs = [surfaces[i] for i in rows]
             T, n_in, rms = np.empty((len(go), 4, 4)), np.zeros(len(go), np.int64), np.full(len(go), np.nan)
             for c0 in range(0, len(go), ICP_CHUNK):  # a few dozen problems at a time: their arrays stay in cache
                 c = slice(c0, c0 + ICP_CHUNK)
-                T[c], n_in[c], rms[c] = _icp(Ta[go][c], Qc[c], valid[c], gs[c], conf)
+                T[c], n_in[c], rms[c] = _icp(Tg[c], Qc[c], valid[c], gs[c], conf)
             rmse[rows] = rms
             good = (n_in >= conf.min_inliers) & np.all(np.isfinite(T), axis=(1, 2))
-            good &= _within_change(T_in[rows], Ta[go], T, gs, conf)
+            good &= _within_change(T_in[rows], Tg, T, gs, conf)
             T_out[rows[good]], ok[rows[good]] = T[good], True
 
     if not scores:
