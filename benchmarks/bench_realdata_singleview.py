@@ -27,7 +27,6 @@ and time per image.
     .venv/bin/python benchmarks/bench_realdata_singleview.py --data lmo --scenes even
     .venv/bin/python benchmarks/bench_realdata_singleview.py --data ycbv --frames 6-10
     .venv/bin/python benchmarks/bench_realdata_singleview.py --data lmo-depth --scenes even --variants old,new
-    .venv/bin/python benchmarks/bench_realdata_singleview.py --data lmo-depth --scenes even --variants new-noscreen,new --timing
     .venv/bin/python benchmarks/bench_realdata_singleview.py --data lmo --scenes odd --sweep all
 
 ``--sweep``: the speed/accuracy of verification settings (``SWEEP``: the first settings ``prev``,
@@ -227,64 +226,6 @@ def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path
 
 
 
-def timing(data: str, scene_ids, variants, work: Path, templates_dir: Path, im_ids=None) -> None:
-    """Seconds per image of the given variants side by side: each image goes through every variant's
-    :class:`~cosy_cli.singleview.estimate_stage.Estimator` in turn (the code `cosy estimate` runs),
-    so their timings share the machine's load; the first image is run untimed (renderers, surfaces).
-    Prints the median (and mean) per image and the median of each step."""
-    import time
-
-    from cosy_cli.detection.boxes import clip_xyxy
-    from cosy_cli.detection.importers import detections_from_gt
-    from cosy_cli.io.dataset import BopDataset
-    from cosy_cli.objects import ObjectDatabase
-    from cosy_cli.singleview import estimate_stage as es
-    from cosy_cli.singleview import templates as tpl
-
-    if data == "lmo-depth":
-        root, split = prepare_lmo_depth(REALDATA / "lmo_dev", work / "lmo_depth_proxy"), "test"
-    elif data == "lmo":
-        root, split = REALDATA / "lmo_dev", "test"
-    else:
-        from bench_realdata_multiview import prepare_ycbv
-
-        root, split = prepare_ycbv(REALDATA / "ycbv_0000", work / "ycbv_0000"), "train_real"
-    ds = BopDataset(root, split)
-    db = ObjectDatabase.from_models_dir(root / "models")
-    es.ensure_templates(root / "models", templates_dir, log=lambda *_: None)
-    ts = tpl.TemplateSet.load(templates_dir)
-    has_depth = data != "lmo"
-    ests = {n: es.Estimator(es.decide(es.resolve_conf("default", coarse="templates", refiner="none", **VARIANTS[n]),
-                                      coarse_model=None, refiner_model=None, has_depth=has_depth), db, templates=ts)
-            for n in variants}
-    dets = detections_from_gt(ds, scene_ids or ds.scene_ids, 0.1)
-    secs, steps, n_det = {n: [] for n in variants}, {n: {} for n in variants}, []
-    try:
-        for k, ((sid, im), idx) in enumerate(dets.groupby(["scene_id", "im_id"]).indices.items()):
-            if im_ids is not None and im not in im_ids:
-                continue
-            d = dets.iloc[idx]
-            rgb, K = ds.read_rgb(sid, im), ds.scene_camera(sid)[im].K
-            depth = ds.read_depth(sid, im) if has_depth else None
-            boxes = clip_xyxy(d[["x", "y", "w", "h"]].to_numpy(), rgb.shape[1], rgb.shape[0])
-            for n, e in ests.items():
-                t0 = time.perf_counter()
-                r = e.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy())
-                dt = time.perf_counter() - t0
-                if k > 0:
-                    secs[n].append(dt)
-                    for step, v in r.times.items():
-                        steps[n].setdefault(step, []).append(v)
-            if k > 0:
-                n_det.append(len(d))
-    finally:
-        for e in ests.values():
-            e.close()
-    for n in variants:
-        print(f"{data} timing {n:14s} {np.median(secs[n]):.3f} s/image median (mean {np.mean(secs[n]):.3f}; "
-              + ", ".join(f"{step} {np.median(v):.3f}" for step, v in steps[n].items())
-              + f"; {np.median(n_det):.1f} detections/image, {len(secs[n])} images)", flush=True)
-
 
 # --sweep: speed/accuracy of verification settings, side by side (interleaved per image, one process)
 PREV = {"verify_top": 64, "rank_faces": 0, "rounds": 4, "samples": 24, "refine_faces": 0,
@@ -382,9 +323,6 @@ def main() -> None:
     ap.add_argument("--variants", default="old,new", help=f"comma-separated of {', '.join(VARIANTS)}")
     ap.add_argument("--sweep", default=None,
                     help=f"lmo only: compare verification settings side by side instead ({', '.join(SWEEP)} or all)")
-    ap.add_argument("--timing", action="store_true",
-                    help="seconds per image of --variants side by side (each image through every variant in turn) "
-                         "instead of their accuracy")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv")
     args = ap.parse_args()
     if not REALDATA.is_dir():
@@ -402,15 +340,9 @@ def main() -> None:
                 ap.error("--sweep compares the RGB chain: use it with --data lmo")
             sweep(scene_ids, list(SWEEP) if args.sweep == "all" else args.sweep.split(","), args.work / "templates_lmo")
             return
-        if args.timing:
-            timing(args.data, scene_ids, variants, args.work, args.work / "templates_lmo")
-            return
         run(args.data, scene_ids, None, variants, args.work, args.work / "templates_lmo")
     else:
         frames = _parse_range(args.frames)
-        if args.timing:
-            timing("ycbv", [0], variants, args.work, args.work / "templates_ycbv", set(frames))
-            return
         targets = args.work / f"ycbv_targets_{args.frames}.json"
         targets.write_text(json.dumps([{"scene_id": 0, "im_id": i, "obj_id": o, "inst_count": 1}
                                        for i in frames for o in (8, 14, 21)]))

@@ -14,8 +14,11 @@ commit before them).
 * ``--data lmo``: ``lmo_dev`` (LM-O, RGB only: templates -> verification -> the default RGB
   refinement (contour alignment; ``*-search`` variants: the RGB search)), scenes
   ``--scenes`` (odd: where settings are chosen; even: held out);
-* ``--data ycbv``: ``ycbv_0000`` frames ``--frames`` (RGB-D: templates -> verification -> ICP on 16
-  hypotheses -> pick by depth fit + image score).
+* ``--data ycbv``: ``ycbv_0000`` frames ``--frames`` (RGB-D: templates -> verification -> short-ICP
+  screen of 32 -> ICP of the best 12 -> pick by depth fit + image score; ``new-noscreen``: ICP of
+  the first 16, no screen);
+* ``--data lmo-depth``: the proxy RGB-D LM-O of ``bench_realdata_singleview.py`` (real RGB, depth
+  rendered from the GT: ``prepare_lmo_depth``), scenes ``--scenes``, the same RGB-D chain.
 
 Prints per variant: the median seconds per image (and mean), the detections per image, the
 per-step medians (template matching, verification + the rest of the coarse step, RGB search,
@@ -27,6 +30,7 @@ first image is run once untimed).
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --scenes odd
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --scenes even
     .venv/bin/python benchmarks/bench_stage1_speed.py --data ycbv --frames 1-5
+    .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo-depth --scenes even --variants new-noscreen,new
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new --profile  # cProfile of new
 """
 
@@ -68,6 +72,7 @@ VARIANTS = {
     "new-rank300-search": ("new", {"rank_faces": 300}, {"rgb_refine": "search"}),
     "new-keep6": ("new", {"rank_keep": 6}, {}),
     "new-keep6-search": ("new", {"rank_keep": 6}, {"rgb_refine": "search"}),
+    "new-noscreen": ("new", {}, {"icp_screen": 0, "top_k": 16}),  # with depth: the first 16 to ICP, no short-ICP screen
 }
 
 
@@ -114,22 +119,24 @@ def swapped(module, name, value):
 
 
 def prepare(data: str, work: Path):
-    """(dataset root, split, models dir) of ``data``; YCB-V is copied and completed with gt-info once."""
-    import shutil
-
+    """(dataset root, split, models dir) of ``data``: YCB-V as the real-data benchmarks copy it
+    (completed with gt-info once), the proxy RGB-D LM-O as bench_realdata_singleview makes it."""
     if data == "lmo":
         return REALDATA / "lmo_dev", "test", REALDATA / "lmo_dev" / "models"
-    root = work / "ycbv_0000"
-    if not (root / "train_real" / "000000" / "scene_gt_info.json").is_file():
-        shutil.copytree(REALDATA / "ycbv_0000", root, dirs_exist_ok=True)
-        subprocess.run([sys.executable, "-m", "cosy_cli", "gt-info", "--dataset", str(root), "--split", "train_real"],
-                       check=True, capture_output=True)
+    if data == "lmo-depth":
+        from bench_realdata_singleview import prepare_lmo_depth
+
+        root = prepare_lmo_depth(REALDATA / "lmo_dev", work / "lmo_depth_proxy")
+        return root, "test", root / "models"
+    from bench_realdata_multiview import prepare_ycbv
+
+    root = prepare_ycbv(REALDATA / "ycbv_0000", work / "ycbv_0000")
     return root, "train_real", root / "models"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", choices=("lmo", "ycbv"), default="lmo")
+    ap.add_argument("--data", choices=("lmo", "lmo-depth", "ycbv"), default="lmo")
     ap.add_argument("--scenes", default="odd", help="lmo: odd | even | all | comma-separated ids")
     ap.add_argument("--frames", default="1-5", help="ycbv: image ids, e.g. 1-5 (chose) or 6-10 (held out)")
     ap.add_argument("--ref", default="HEAD", help="git revision of the reference chain's verify.py / templates.py")
@@ -156,10 +163,10 @@ def main() -> None:
     ds = BopDataset(root, split)
     db = ObjectDatabase.from_models_dir(models)
     dbe = ObjectDatabase.from_models_dir(root / "models_eval") if (root / "models_eval").is_dir() else db
-    tdir = args.work / f"templates_{args.data}"
+    tdir = args.work / f"templates_{'lmo' if args.data == 'lmo-depth' else args.data}"  # the same models
     es.ensure_templates(models, tdir, log=lambda *_: None)  # built once per object set
     ts = tpl.TemplateSet.load(tdir)
-    if args.data == "lmo":
+    if args.data in ("lmo", "lmo-depth"):
         ids = list(range(1, 32))
         scene_ids = {"even": [i for i in ids if i % 2 == 0], "odd": [i for i in ids if i % 2 == 1],
                      "all": ids}.get(args.scenes) or [int(x) for x in args.scenes.split(",")]
@@ -167,7 +174,7 @@ def main() -> None:
     else:
         scene_ids, im_ids = [0], set(_parse_range(args.frames))
     dets = detections_from_gt(ds, scene_ids, 0.1)
-    has_depth = args.data == "ycbv"
+    has_depth = args.data != "lmo"
     names = args.variants.split(",")
     ref = {}
     if any(VARIANTS[n][0] == "ref" for n in names):
@@ -244,7 +251,7 @@ def main() -> None:
     for n in names:
         chains[n][0].close()
     load = os.getloadavg()[0]
-    print(f"{args.data} {args.scenes if args.data == 'lmo' else 'frames ' + args.frames}: {len(groups)} images, "
+    print(f"{args.data} {'frames ' + args.frames if args.data == 'ycbv' else args.scenes}: {len(groups)} images, "
           f"ref = {args.ref}, load {load:.1f}")
     for n in names:
         R = {k: np.asarray(v) for k, v in res[n].items()}
