@@ -73,6 +73,9 @@ VARIANTS = {
     "new-keep6": ("new", {"rank_keep": 6}, {}),
     "new-keep6-search": ("new", {"rank_keep": 6}, {"rgb_refine": "search"}),
     "new-noscreen": ("new", {}, {"icp_screen": 0, "top_k": 16}),  # with depth: the first 16 to ICP, no short-ICP screen
+    "new-nocascade": ("new", {"rank_faces": 0}, {}),  # every hypothesis verified with the full copies (depth before 2026-12-02)
+    "new-vt96": ("new", {}, {"verify_top": 96}),  # more hypotheses verified
+    "new-vt128": ("new", {}, {"verify_top": 128}),
 }
 
 

@@ -280,8 +280,8 @@ class Estimator:
             if verified:  # many distinct templates, re-ranked by rendering them against the image
                 h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=max(nv, c["top_k"]),
                                     params=MatchParams(nms_deg=10.0))
-                # with depth, ICP dominates the time: every hypothesis scored at full quality
-                ranked = self.verifier.rank(rgb, K, boxes, obj_ids, h.T_cam_obj, h.scores, cascade=not use_depth)
+                # the cascade (coarse copies first) with depth too: see verify's module docstring
+                ranked = self.verifier.rank(rgb, K, boxes, obj_ids, h.T_cam_obj, h.scores)
                 hyp, hyp_score = ranked.T_cam_obj[:, :c["top_k"]], ranked.score[:, :c["top_k"]]
                 res.steps["templates"] = h.T_cam_obj[:, 0].copy()
             else:
