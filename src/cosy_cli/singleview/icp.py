@@ -121,8 +121,6 @@ class _Surface:
             c = self.points.mean(0)
             normals = np.where((np.einsum("ij,ij->i", normals, self.points - c) < 0)[:, None], -normals, normals)
         self.normals = np.ascontiguousarray(normals)
-        self.points_t = np.ascontiguousarray(self.points.T)  # (3, N) for the ICP loop
-        self.normals_t = np.ascontiguousarray(self.normals.T)
         self.centre = (self.points.min(0) + self.points.max(0)) / 2
         self.radius = float(np.linalg.norm(self.points - self.centre, axis=1).max())
         self.n_dot_p = np.einsum("ij,ij->i", self.normals, self.points)
@@ -389,17 +387,20 @@ def _align_depth(T: np.ndarray, surfaces, K: np.ndarray, depth: np.ndarray, tols
 
 
 class _Batch:
-    """The model data of M ICP problems gathered for vectorised steps: each row's surface samples
-    and normals (by index into the stacked distinct surfaces) and its nearest-sample grid (the
-    distinct grids' tables concatenated, with per-row origin, voxel side, strides and offset)."""
+    """The model data of M ICP problems gathered for vectorised steps: each row's surface samples,
+    normals and n . p (by index into the packed rows of the distinct surfaces) and its
+    nearest-sample grid (the distinct grids' tables concatenated, with per-row origin, voxel side,
+    strides and offset)."""
 
     def __init__(self, surfaces, reach: np.ndarray):
         uniq, rows = _stacked(surfaces)
         sizes = [len(s.points) for s in uniq]
         self.start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)[rows]  # each row's first sample
-        self.points = np.concatenate([s.points_t for s in uniq], 1).astype(ICP_DTYPE)  # (3, U * N)
-        self.normals = np.concatenate([s.normals_t for s in uniq], 1).astype(ICP_DTYPE)
-        self.n_dot_p = np.concatenate([s.n_dot_p for s in uniq]).astype(ICP_DTYPE)  # (U * N,)
+        # per sample one row of 8: point (3), normal (3), n . p, padding: one gather fetches all of them
+        self.packed = np.zeros((sum(sizes), 8), ICP_DTYPE)  # (U * N, 8)
+        self.packed[:, :3] = np.concatenate([s.points for s in uniq])
+        self.packed[:, 3:6] = np.concatenate([s.normals for s in uniq])
+        self.packed[:, 6] = np.concatenate([s.n_dot_p for s in uniq])
         first = np.unique(rows, return_index=True)[1]
         grids = [uniq[u].grid(reach[i]) for u, i in enumerate(first)]
         offsets = np.cumsum([0] + [g.index.size for g in grids[:-1]])
@@ -411,7 +412,7 @@ class _Batch:
         self.offset = offsets[rows]
 
     def nearest(self, sel: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """Nearest-sample indices (m, n) into ``points`` of points Q (m, 3, n) (object frames) of rows sel."""
+        """Nearest-sample indices (m, n) into ``packed`` of points Q (m, 3, n) (object frames) of rows sel."""
         ijk = np.rint((Q - self.origin[sel][:, :, None]) * self.inv_h[sel][:, None, None])
         np.clip(ijk, 0.0, self.top[sel][:, :, None], out=ijk)
         cell = np.einsum("mi,min->mn", self.strides[sel], ijk).astype(np.intp) + self.offset[sel][:, None]
@@ -427,13 +428,12 @@ def _pairs(T, Qc, valid, batch: _Batch, sel, trim):
     Rt = np.swapaxes(T[:, :3, :3], 1, 2).astype(Qc.dtype)  # R^T
     t = T[:, :3, 3].astype(Qc.dtype)
     Q = np.matmul(Rt, Qc[:, :3] - t[:, :, None])
-    j = batch.nearest(sel, Q)
-    e = Q - np.moveaxis(batch.points[:, j], 0, 1)
-    nn = np.moveaxis(batch.normals[:, j], 0, 1)
+    g = np.moveaxis(batch.packed.take(batch.nearest(sel, Q), axis=0), 2, 1)  # (m, 8, n) view
+    e = Q - g[:, :3]
+    nn = np.ascontiguousarray(g[:, 3:6])
     s = np.einsum("min,min->mn", e, e) / (trim * trim).astype(Qc.dtype)[:, None]
     cam = -np.einsum("mij,mj->mi", Rt, t)  # camera centre in the object frame; |cam - p| ~ |cam| for the facing test
-    facing = np.einsum("mi,min->mn", cam, nn) - batch.n_dot_p.take(j) \
-        > FACING_COS_ICP * np.linalg.norm(cam, axis=1)[:, None]
+    facing = np.einsum("mi,min->mn", cam, nn) - g[:, 6] > FACING_COS_ICP * np.linalg.norm(cam, axis=1)[:, None]
     same = np.einsum("min,min->mn", np.matmul(Rt, Qc[:, 3:]), nn) > NORMAL_COS
     s[(s > 1.0) | ~facing | ~same | ~valid] = 1.0
     return Q, e, nn, s
