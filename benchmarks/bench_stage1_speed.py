@@ -3,7 +3,7 @@ against a git revision, side by side.
 
 Both chains run through :class:`cosy_cli.singleview.estimate_stage.Estimator` (the code `cosy
 estimate` runs, default settings) on the visible GT boxes of real images; the reference chain swaps
-in the verification and template-matching modules of ``--ref`` (default ``HEAD``: the last commit),
+in the verification, template-matching and ICP modules of ``--ref`` (default ``HEAD``: the last commit),
 loaded from git into this process (the renderer is the working tree's for both: its default
 per-fragment program, the one the reference used, but also its cheaper state changes, so the
 reference is if anything a little faster than it was). All variants run on each image in turn, so
@@ -31,6 +31,7 @@ first image is run once untimed).
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --scenes even
     .venv/bin/python benchmarks/bench_stage1_speed.py --data ycbv --frames 1-5
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo-depth --scenes even --variants new-noscreen,new
+    .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo-depth --scenes even --ref c349180 --variants ref-nocascade,new
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new --profile  # cProfile of new
 """
 
@@ -73,7 +74,8 @@ VARIANTS = {
     "new-keep6": ("new", {"rank_keep": 6}, {}),
     "new-keep6-search": ("new", {"rank_keep": 6}, {"rgb_refine": "search"}),
     "new-noscreen": ("new", {}, {"icp_screen": 0, "top_k": 16}),  # with depth: the first 16 to ICP, no short-ICP screen
-    "new-nocascade": ("new", {"rank_faces": 0}, {}),  # every hypothesis verified with the full copies (depth before 2026-12-02)
+    "new-nocascade": ("new", {"rank_faces": 0}, {}),
+    "ref-nocascade": ("ref", {"rank_faces": 0}, {}),  # with depth: the default up to c349180  # every hypothesis verified with the full copies (depth before 2026-12-02)
     "new-vt96": ("new", {}, {"verify_top": 96}),  # more hypotheses verified
     "new-vt128": ("new", {}, {"verify_top": 128}),
 }
@@ -159,7 +161,7 @@ def main() -> None:
     from cosy_cli.objects import ObjectDatabase
     from cosy_cli.singleview import estimate_stage as es
     from cosy_cli.singleview import templates as tpl
-    from cosy_cli.singleview import verify
+    from cosy_cli.singleview import icp, verify
 
     args.work.mkdir(parents=True, exist_ok=True)
     root, split, models = prepare(args.data, args.work)
@@ -181,18 +183,19 @@ def main() -> None:
     names = args.variants.split(",")
     ref = {}
     if any(VARIANTS[n][0] == "ref" for n in names):
-        ref = {"verify": load_ref_module("verify", args.ref), "templates": load_ref_module("templates", args.ref)}
+        ref = {m: load_ref_module(m, args.ref) for m in ("verify", "templates", "icp")}
     chains = {}
     for n in names:
         code, over, est_over = VARIANTS[n]
         vmod = ref["verify"] if code == "ref" else verify
         tmod = ref["templates"] if code == "ref" else tpl
+        imod = ref["icp"] if code == "ref" else icp
         run_conf = es.decide(es.resolve_conf("default", **est_over), coarse_model=None, refiner_model=None,
                              has_depth=has_depth)
         run_conf.update(coarse="templates", refiner="none")
         est = es.Estimator(run_conf, db, templates=ts)
         est._verifier = vmod.Verifier(db, vmod.VerifyConf(**over))
-        chains[n] = (est, tmod)
+        chains[n] = (est, tmod, imod)
     syms = {o: dbe[o].symmetries_with_steps(64) for o in dbe.obj_ids}
     th_mssd, th_mspd = np.arange(0.05, 0.51, 0.05), np.arange(5, 51, 5)
     res = {n: {"t": [], "match": [], "coarse": [], "rgb_refine": [], "contour": [], "icp": [], "ar": [], "rot": [],
@@ -217,15 +220,17 @@ def main() -> None:
         T_gt = np.stack([gt[g].T_cam_obj for g in d["gt_index"]])
         if first:  # warm-up: renderers, GPU meshes, decimated copies (built once per object set)
             for n in names:
-                est, tmod = chains[n]
-                with swapped(tpl, "match_templates", tmod.match_templates):
+                est, tmod, imod = chains[n]
+                with swapped(tpl, "match_templates", tmod.match_templates), \
+                        swapped(icp, "refine_with_depth", imod.refine_with_depth):
                     est.estimate(rgb, depth, K, boxes, obj)
             first = False
         for j, n in enumerate(names):
-            est, tmod = chains[n]
+            est, tmod, imod = chains[n]
             clock = Clock()
             on = prof is not None and j == len(names) - 1
-            with swapped(tpl, "match_templates", clock.wrap(tmod.match_templates)):
+            with swapped(tpl, "match_templates", clock.wrap(tmod.match_templates)), \
+                    swapped(icp, "refine_with_depth", imod.refine_with_depth):
                 if on:
                     prof.enable()
                 t0 = time.perf_counter()
