@@ -233,7 +233,7 @@ def test_depth_scale_that_misplaces_the_gt_objects_warns(clean, tmp_path, templa
                         str(templates_dir), "--out", str(tmp_path / "c.csv"), "--quiet"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    warned = [ln for ln in r.stderr.splitlines() if "depth_scale" in ln]
+    warned = [ln for ln in r.stderr.splitlines() if "wrong depth_scale" in ln]  # (tmp_path holds "depth_scale" too)
     assert len(warned) == 1, r.stderr
     assert warned[0].startswith(f"warning: {_scene(root) / 'depth' / '000000.png'}: the measured depth at the GT "
                                 "objects is 9.47 times their GT distance (8 of 8 object(s) more than 10% off"), warned
