@@ -74,8 +74,8 @@ VARIANTS = {
     "new-keep6": ("new", {"rank_keep": 6}, {}),
     "new-keep6-search": ("new", {"rank_keep": 6}, {"rgb_refine": "search"}),
     "new-noscreen": ("new", {}, {"icp_screen": 0, "top_k": 16}),  # with depth: the first 16 to ICP, no short-ICP screen
-    "new-nocascade": ("new", {"rank_faces": 0}, {}),
-    "ref-nocascade": ("ref", {"rank_faces": 0}, {}),  # with depth: the default up to c349180  # every hypothesis verified with the full copies (depth before 2026-12-02)
+    "new-nocascade": ("new", {"rank_faces": 0}, {}),  # every hypothesis verified with the full copies (with depth: the default up to c349180)
+    "ref-nocascade": ("ref", {"rank_faces": 0}, {}),  # the same in --ref's modules (--ref c349180: that commit's RGB-D chain)
     "new-vt96": ("new", {}, {"verify_top": 96}),  # more hypotheses verified
     "new-vt128": ("new", {}, {"verify_top": 128}),
 }

@@ -62,7 +62,8 @@ cascade runs too (since 2026-12-02; before, every hypothesis was scored with the
 the proxy RGB-D LM-O odd scenes 3 of 282 picks changed (BOP19 AR 0.720 -> 0.718; YCB-V frames 1-5
 0.554 -> 0.558, synthetic dev scenes 0.937 -> 0.939) for 0.53x the verification time, 0.84x the
 chain's (``bench_stage1_speed.py --data lmo-depth --variants new-nocascade,new``): the ICP and the
-depth pick, not the verification order, decide there.
+depth pick, not the verification order, decide there. Held out: proxy even scenes 0.722 -> 0.719,
+YCB-V frames 6-10 0.460 -> 0.438 (the mug in one frame), synthetic held-out scenes unchanged.
 
 Lengths in mm; T_cam_obj 4x4 (OpenCV camera); K (3, 3) px; boxes x1, y1, x2, y2 px (pixel edges).
 """
