@@ -142,7 +142,8 @@ class _Surface:
 
 class _NearestGrid:
     """The KD-tree's nearest surface sample, tabulated at voxel centres (voxel = diameter / GRID_STEPS)
-    over the model's box grown by ``reach`` mm: a lookup replaces the tree query in the ICP loop.
+    over the model's box grown by ``reach`` mm: a lookup (:meth:`_Batch.nearest`, for the grids of
+    a batch of ICP problems) replaces the tree query in the ICP loop.
     The looked-up sample's distance exceeds the exact nearest distance by at most h*sqrt(3) mm
     (h = voxel side). Points outside the grid get the sample of the closest border voxel, which is
     farther than ``reach`` from them (callers trim by the exact distance)."""
@@ -158,13 +159,7 @@ class _NearestGrid:
         _, idx = surf.tree.query(centres)
         self.index = idx.astype(np.int16 if len(surf.points) < 2 ** 15 else np.int32)  # small: one per voxel
         self.strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1], dtype=np.float64)
-        self.top = (self.shape - 1).astype(np.float64)[:, None]
-
-    def lookup(self, Q: np.ndarray) -> np.ndarray:
-        """Nearest-sample indices (n,) of points Q (3, n) in the object frame (mm)."""
-        ijk = np.rint((Q - self.origin[:, None]) * (1.0 / self.h))
-        np.clip(ijk, 0.0, self.top, out=ijk)
-        return self.index.take((self.strides @ ijk).astype(np.intp))
+        self.top = (self.shape - 1).astype(np.float64)  # the last voxel index per axis
 
 
 _SURFACES: dict[int, tuple[weakref.ref, _Surface]] = {}
@@ -408,7 +403,7 @@ class _Batch:
         self.origin = np.stack([g.origin for g in grids])[rows]  # (M, 3)
         self.inv_h = (1.0 / np.array([g.h for g in grids]))[rows]
         self.strides = np.stack([g.strides for g in grids])[rows]
-        self.top = np.stack([g.top[:, 0] for g in grids])[rows]
+        self.top = np.stack([g.top for g in grids])[rows]
         self.offset = offsets[rows]
 
     def nearest(self, sel: np.ndarray, Q: np.ndarray) -> np.ndarray:
