@@ -9,6 +9,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import json  # noqa: E402
 import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -84,7 +85,54 @@ def test_relative_pose_of_two_real_lmo_views_matches_the_gt_derived_one():
     assert abs(np.linalg.norm(p.T_a_b[:3, 3]) - 1.0) < 1e-9
     # the same image twice: no baseline to speak of, but the rotation is the identity
     q = ft.relative_pose(cache, a, ds.read_rgb(s, a), cams[a].K, a, ds.read_rgb(s, a), cams[a].K)
-    assert q is None or angle_deg(q.T_a_b[:3, :3], np.eye(3)) < 1.0
+    assert not q.ok or angle_deg(q.T_a_b[:3, :3], np.eye(3)) < 1.0
+    # a blank image: no pose, and a reason instead
+    blank = ft.relative_pose(cache, "blank", np.zeros((480, 640, 3), np.uint8), cams[a].K, a, ds.read_rgb(s, a),
+                             cams[a].K)
+    assert not blank.ok and blank.n_inliers == 0 and "too few features" in blank.failure
+
+
+DATA = Path(__file__).parent / "data"
+
+
+def test_the_demo_pair_that_crashed_opencv_51_gives_a_pose_and_degenerate_points_a_reason():
+    """The 24 SIFT matches (normalised image coordinates) of a demo image pair on which OpenCV
+    5.1.0's classic RANSAC findEssentialMat raised (an assertion in solvePoly) and so crashed
+    ``cosy refine`` and ``make demo``: cosy's essential_pose gives a pose for them on every OpenCV
+    (4.14, 5.0 and 5.1 give the same one), and degenerate points give a reason, never an error."""
+    import cv2
+
+    from cosy_cli.geometry.poses import is_rotation
+    from cosy_cli.multiview import features as ft
+
+    d = np.load(DATA / "opencv51_essential_demo.npz")
+    xa, xb, thr = d["xa"], d["xb"], float(d["threshold"])
+    if cv2.__version__ == "5.1.0":  # the trap itself: this input is the one that crashed
+        with pytest.raises(cv2.error, match="solvePoly"):
+            cv2.findEssentialMat(xa.reshape(-1, 1, 2), xb.reshape(-1, 1, 2), np.eye(3), method=cv2.RANSAC,
+                                 prob=0.999, threshold=thr)
+    r = ft.essential_pose(xa, xb, thr)
+    assert not isinstance(r, str), r
+    T_b_a, n_in = r
+    assert 5 <= n_in <= len(xa) and is_rotation(T_b_a[:3, :3]) and abs(np.linalg.norm(T_b_a[:3, 3]) - 1) < 1e-9
+    assert ft.essential_pose(xa, xb, thr)[1] == n_in  # reproducible (USAC's fixed seed)
+    # a minimal sample of real LM-O matches on which 5.1's 5-point solver asserts: three of view b's
+    # points are one keypoint matched three times
+    five_a = np.array([[-0.2443, 0.1923], [-0.1591, -0.0042], [0.1584, 0.3829], [-0.2798, -0.0814], [0.4393, -0.0291]])
+    five_b = np.array([[-0.3037, 0.1348], [-0.3037, 0.1348], [-0.2060, 0.3846], [-0.1857, 0.3866], [-0.3037, 0.1348]])
+    for pts_a, pts_b in [(five_a, five_b), (np.zeros((30, 2)), np.zeros((30, 2))),  # all one point
+                         (xa[:4], xb[:4]), (np.full((10, 2), np.nan), xb[:10]),
+                         (np.c_[np.linspace(-1, 1, 20), np.zeros(20)], np.c_[np.linspace(-1, 1, 20), np.zeros(20)])]:
+        out = ft.essential_pose(pts_a, pts_b, thr)
+        assert isinstance(out, str) or is_rotation(out[0][:3, :3])
+    assert "5 needed" in ft.essential_pose(xa[:4], xb[:4], thr)
+    assert "not all finite" in ft.essential_pose(np.full((10, 2), np.nan), xb[:10], thr)
+    # an OpenCV error is a reason naming OpenCV's function, without its source path
+    why = ft.opencv_failure("essential matrix", cv2.error(
+        "OpenCV(5.1.0) /io/opencv/modules/core/src/mathfuncs.cpp:1601: error: (-215:Assertion failed) "
+        "std::abs(coeffs[n].re) + std::abs(coeffs[n].im) > DBL_EPSILON in function 'solvePoly'\n"))
+    assert why.startswith("essential matrix: OpenCV refused the input ((-215:Assertion failed)") and "/io/" not in why
+    assert "solvePoly" in why and "\n" not in why
 
 
 
@@ -269,3 +317,45 @@ def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_c
         err = float(np.ravel(rot_err(pred.T_cam_obj[q[0]][:3, :3], orthonormal(g_b.T_cam_obj)[:3, :3]))[0])
         assert err < 10.0, (x, err)
 
+
+
+def test_refine_records_an_image_pair_opencv_refuses_and_goes_on(tmp_path, monkeypatch):
+    """When OpenCV raises on an image pair's matches (as 5.1.0's RANSAC did on the demo's), cosy
+    refine still refines every group: that pair has no pose, scene.json says why (the OpenCV
+    assertion, per view), the summary counts such pairs, and the refined scene is the same as
+    without feature cameras (the default uses them only for leftovers)."""
+    import cv2
+
+    from cosy_cli.io import bop
+    from cosy_cli.multiview import match_stage, refine_stage
+    from cosy_cli.synth import candidates as synth_candidates
+
+    data = Path(__file__).resolve().parents[1] / "data_samples"
+    quiet = lambda *a, **k: None  # noqa: E731
+    synth_candidates.main(data, "test", tmp_path / "all.csv", profile="realistic", seed=7, log=quiet)
+    res = bop.read_results(tmp_path / "all.csv", check_rotations=False)
+    keep = res.table["scene_id"].to_numpy() == res.table["scene_id"].min()
+    t = res.table[keep]
+    (tmp_path / "c.csv").write_text(bop.format_results(bop.PoseResults.from_arrays(
+        t["scene_id"], t["im_id"], t["obj_id"], t["score"], res.T_cam_obj[keep], t["time"])))
+    match_stage.main(match_stage.resolve_conf("paper"), data, "test", tmp_path / "c.csv", tmp_path / "m", log=quiet,
+                     progress=False)
+    refine_stage.main(refine_stage.resolve_conf(None, feature_cameras="none"), data, "test", tmp_path / "m",
+                      tmp_path / "none", log=quiet, progress=False)
+
+    def refuse(*args, **kwargs):
+        raise cv2.error("OpenCV(5.1.0) /io/opencv/modules/core/src/mathfuncs.cpp:1601: error: (-215:Assertion "
+                        "failed) std::abs(coeffs[n].re) + std::abs(coeffs[n].im) > DBL_EPSILON in function 'solvePoly'\n")
+
+    monkeypatch.setattr(cv2, "findEssentialMat", refuse)
+    lines = []
+    summary = refine_stage.main(None, data, "test", tmp_path / "m", tmp_path / "r", log=lines.append, progress=False)
+    doc = json.loads((tmp_path / "r" / "scene.json").read_text())
+    views = [v for g in doc["groups"] for v in g["stats"].get("feature_cameras", {}).get("views", {}).values()]
+    refused = [v for v in views if "OpenCV refused" in v.get("no_pose", "")]
+    assert refused and all("solvePoly" in v["no_pose"] and not v["used"] and v["inliers"] == 0 for v in refused)
+    assert summary["feature_pairs_refused"] == len(refused) and summary["feature_cameras_used"] == 0
+    assert "could not estimate a pose from" in lines[-1]
+    none = json.loads((tmp_path / "none" / "scene.json").read_text())
+    for ga, gb in zip(doc["groups"], none["groups"]):
+        assert [o["T_world_obj"] for o in ga["objects"]] == [o["T_world_obj"] for o in gb["objects"]]

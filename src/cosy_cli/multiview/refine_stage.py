@@ -820,8 +820,11 @@ def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams:
 
 def _pair_record(pair, used: bool) -> dict:
     """scene.json's record of a view's image pair with the gauge view (``stats.feature_cameras``)."""
-    return {"inliers": 0 if pair is None else pair.n_inliers, "used": used,
-            "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2)}
+    rec = {"inliers": 0 if pair is None else pair.n_inliers, "used": used,
+           "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2)}
+    if pair is not None and pair.failure:
+        rec["no_pose"] = pair.failure  # why the images gave no relative pose (too few matches, OpenCV refused)
+    return rec
 
 
 def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
@@ -1108,6 +1111,9 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "leftovers_replaced": int(sum(r["stats"].get("image_check_leftovers", {}).get("replaced", 0) for r in results)),
         "feature_cameras_used": int(sum(v["used"] for r in results
                                         for v in r["stats"].get("feature_cameras", {}).get("views", {}).values())),
+        # image pairs on which OpenCV refused the features (degenerate matches): no pose, the reason in scene.json
+        "feature_pairs_refused": int(sum("OpenCV refused" in v.get("no_pose", "") for r in results
+                                         for v in r["stats"].get("feature_cameras", {}).get("views", {}).values())),
         "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
         "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,
     }
@@ -1138,6 +1144,8 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         + (f"; {summary['leftovers_replaced']} leftover candidates took another view's pose"
            if summary["leftovers_replaced"] else "")
         + (f"; feature cameras for {summary['feature_cameras_used']} views" if summary["feature_cameras_used"] else "")
+        + (f"; {summary['feature_pairs_refused']} image pair(s) OpenCV could not estimate a pose from (scene.json "
+           "stats.feature_cameras: no_pose)" if summary["feature_pairs_refused"] else "")
         + f"; {summary['time_per_group_ms']:.2f} ms per group (max {summary['max_time_per_group_ms']:.2f}); "
         f"total {time.perf_counter() - t_start:.2f} s -> {out}")
     return summary
