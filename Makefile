@@ -9,7 +9,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export OMP_WAIT_POLICY ?= PASSIVE
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: all demo test sysdeps bench eval-sample clean-venv sample-data
+.PHONY: all demo test test-latest lock sysdeps bench eval-sample clean-venv sample-data
 
 all: demo
 
@@ -26,15 +26,65 @@ sysdeps:
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; \
 	fi
 
-$(VENV)/.installed: pyproject.toml
+# The install is locked: requirements/lock.txt pins every package (transitive ones, pip and
+# setuptools included) at the versions the tests last passed with. The venv gets exactly those
+# (pip check verifies they agree), then cosy itself, editable and without dependencies of its own.
+# A version in the lock that cannot be had fails here, with pip's message.
+LOCK := requirements/lock.txt
+# torch: the CPU build. `pip install torch==X` here finds it among the local wheels; elsewhere
+# give pip PyTorch's CPU wheel index (PIP_EXTRA_INDEX_URL), or pip takes the multi-GB CUDA build.
+TORCH_VERSION ?= 2.13.0
+PIP_QUIET ?= -q
+
+$(VENV)/.installed: pyproject.toml $(LOCK)
 	$(MAKE) sysdeps
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install $(PIP_QUIET) "$$(grep -E '^pip==' $(LOCK))"
+	$(PY) -m pip install $(PIP_QUIET) -r $(LOCK)
+	$(PY) -m pip install $(PIP_QUIET) --no-deps --no-build-isolation -e .
+	$(PY) -m pip check
 	touch $@
 
 $(VENV): $(VENV)/.installed
+
+# Regenerates the lock from pyproject.toml in a fresh virtualenv: the newest releases within its
+# ranges (torch: the CPU build TORCH_VERSION). Check it before committing: make clean-venv test demo.
+LOCK_VENV := .venv-lock
+lock:
+	rm -rf $(LOCK_VENV)
+	$(PYTHON) -m venv $(LOCK_VENV)
+	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
+	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) torch==$(TORCH_VERSION)
+	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) '.[test]'
+	mkdir -p $(dir $(LOCK))
+	{ echo "# cosy's locked install: every package make installs, at the versions the tests passed with."; \
+	  echo "# Made by 'make lock' (a fresh virtualenv, pyproject.toml's ranges, torch $(TORCH_VERSION) CPU build)"; \
+	  echo "# with Python $$($(LOCK_VENV)/bin/python -c 'import platform; print(platform.python_version())')" \
+	       "on $$(uname -m), $$(date -u +%Y-%m-%d). Check it with: make clean-venv test demo"; \
+	  $(LOCK_VENV)/bin/python -m pip freeze --all --exclude cosy-cli | sed -E 's/^(torch==[^+]*)\+cpu$$/\1/' | LC_ALL=C sort -f -t= -k1,1; \
+	} > $(LOCK).tmp
+	mv $(LOCK).tmp $(LOCK)
+	rm -rf $(LOCK_VENV)
+	@echo "wrote $(LOCK): check it with 'make clean-venv test demo' (and 'make test-latest')"
+
+# The newest release of everything, no lock (torch: the CPU build TORCH_VERSION unless
+# TORCH_SPEC says otherwise): the whole test suite and the demo in a fresh virtualenv.
+# For maintainers, to see what the next lock will bring.
+LATEST_VENV := .venv-latest
+TORCH_SPEC ?= torch==$(TORCH_VERSION)
+test-latest:
+	$(MAKE) sysdeps
+	rm -rf $(LATEST_VENV)
+	$(PYTHON) -m venv $(LATEST_VENV)
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) '$(TORCH_SPEC)'
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade --upgrade-strategy eager -e '.[test]'
+	$(LATEST_VENV)/bin/python -m pip check
+	$(LATEST_VENV)/bin/python -m pip freeze --exclude-editable > $(LATEST_VENV)/versions.txt
+	touch $(LATEST_VENV)/.installed
+	@echo "newest versions: $(LATEST_VENV)/versions.txt; differences from $(LOCK):"
+	@diff <(grep -v '^#' $(LOCK) | sed 's/+cpu//' | LC_ALL=C sort -f) <(sed 's/+cpu//' $(LATEST_VENV)/versions.txt | LC_ALL=C sort -f) | grep '^[<>]' || echo "  none"
+	$(MAKE) VENV=$(LATEST_VENV) DEMO_OUT=demo_out_latest test demo
 
 DEMO_OUT ?= demo_out
 # The shipped detector when there is one (then also a run on the visible GT boxes, the upper
