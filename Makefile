@@ -67,23 +67,23 @@ lock:
 	rm -rf $(LOCK_VENV)
 	@echo "wrote $(LOCK): check it with 'make clean-venv test demo' (and 'make test-latest')"
 
-# The newest release of everything, no lock (torch: the CPU build TORCH_VERSION unless
-# TORCH_SPEC says otherwise): the whole test suite and the demo in a fresh virtualenv.
-# For maintainers, to see what the next lock will bring.
+# The newest release of everything, no lock (torch included: TORCH_SPEC, default the newest,
+# which on PyPI is a CUDA build; TORCH_SPEC=torch==$(TORCH_VERSION) keeps the CPU build): the
+# whole test suite and the demo in a fresh virtualenv. For maintainers, to see what the next
+# lock will bring.
 LATEST_VENV := .venv-latest
-TORCH_SPEC ?= torch==$(TORCH_VERSION)
+TORCH_SPEC ?= torch
 test-latest:
 	$(MAKE) sysdeps
 	rm -rf $(LATEST_VENV)
 	$(PYTHON) -m venv $(LATEST_VENV)
 	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
-	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) '$(TORCH_SPEC)'
-	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade --upgrade-strategy eager -e '.[test]'
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade --upgrade-strategy eager -e '.[test]' '$(TORCH_SPEC)'
 	$(LATEST_VENV)/bin/python -m pip check
-	$(LATEST_VENV)/bin/python -m pip freeze --exclude-editable > $(LATEST_VENV)/versions.txt
+	$(LATEST_VENV)/bin/python -m pip freeze --all --exclude-editable > $(LATEST_VENV)/versions.txt
 	touch $(LATEST_VENV)/.installed
 	@echo "newest versions: $(LATEST_VENV)/versions.txt; differences from $(LOCK):"
-	@diff <(grep -v '^#' $(LOCK) | sed 's/+cpu//' | LC_ALL=C sort -f) <(sed 's/+cpu//' $(LATEST_VENV)/versions.txt | LC_ALL=C sort -f) | grep '^[<>]' || echo "  none"
+	@diff <(grep -v '^#' $(LOCK) | LC_ALL=C sort -f -t= -k1,1) <(sed 's/+cpu$$//' $(LATEST_VENV)/versions.txt | LC_ALL=C sort -f -t= -k1,1) | grep '^[<>]' || echo "  none"
 	$(MAKE) VENV=$(LATEST_VENV) DEMO_OUT=demo_out_latest test demo
 
 DEMO_OUT ?= demo_out

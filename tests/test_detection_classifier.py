@@ -93,6 +93,29 @@ def test_rescore_background_and_unknown_labels():
     assert sorted(zip(lab.tolist(), np.round(s, 6).tolist())) == [(1, 0.2), (42, 0.5)]
     with pytest.raises(ValueError, match="columns"):
         rescore(np.zeros((1, 4)), np.ones(1), np.ones(1), np.ones((1, 5)), IDS)
+    # an image the detector found nothing in (a black frame): nothing out, no error
+    b, s, lab, rows = rescore(np.zeros((0, 4)), np.zeros(0), np.zeros(0), np.zeros((0, 9)), IDS)
+    assert b.shape == (0, 4) and len(s) == len(lab) == len(rows) == 0
+    assert len(rescore(np.zeros((0, 4)), np.zeros(0), np.zeros(0), np.zeros(0), IDS)[0]) == 0
+
+
+def test_detect_with_the_shipped_classifier_on_an_image_without_objects(tmp_path):
+    """The shipped detector and box classifier on a scene with one all-black image: that image
+    gets no detection, the others theirs (the empty box set once crashed the classifier step)."""
+    import shutil
+
+    from cosy_cli.io.images import read_rgb, write_rgb
+
+    ds = tmp_path / "ds"
+    shutil.copytree(SAMPLES, ds, ignore=shutil.ignore_patterns("000002", "000003"))
+    rgb_dir = ds / "test" / "000001" / "rgb"
+    first = sorted(rgb_dir.iterdir())[0]
+    write_rgb(first, np.zeros_like(read_rgb(first)))
+    r = CliRunner().invoke(cli, ["detect", "--dataset", str(ds), "--out", str(tmp_path / "d.json"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    d = bop.read_detections(tmp_path / "d.json")
+    im_black = int(first.stem)
+    assert (d["im_id"] != im_black).all() and d["im_id"].nunique() == len(list(rgb_dir.iterdir())) - 1
 
 
 # ------------------------------------------------------------------------------------------------

@@ -43,6 +43,25 @@ def test_scene_camera_round_trip(tmp_path):
     assert back[2].extra == {"elev": 45}
 
 
+@pytest.mark.parametrize("K, depth_scale, message", [
+    ([[0, 0, 320], [0, 500, 240], [0, 0, 1]], 1.0, "fx and fy must be > 0, got fx=0"),
+    ([[500, 0, 320], [0, -500, 240], [0, 0, 1]], 1.0, "fx and fy must be > 0"),
+    ([[500, 0, 320], [0, 500, 240], [0, 0, 0]], 1.0, "last row is 0 0 0, expected 0 0 1"),
+    ([[500, 0, 320], [0, 500, 240], [0, 0, 1]], 0.0, "depth_scale must be > 0"),
+])
+def test_scene_camera_that_is_no_pinhole_camera_is_refused_naming_the_image(tmp_path, K, depth_scale, message):
+    """A K with fx = 0 or a singular last row made estimate, refine and the figures divide by zero
+    or invert a singular matrix: the reader refuses it, naming the image (cosy validate, which
+    lists every such image, reads without the check)."""
+    good = np.array([[500, 0, 320], [0, 500, 240], [0, 0, 1.0]])
+    cams = {0: bop.SceneCamera(K=good), 5: bop.SceneCamera(K=np.array(K, float), depth_scale=depth_scale)}
+    bop.write_scene_camera(tmp_path / "sc.json", cams)
+    with pytest.raises(CosyError, match=message) as e:
+        bop.read_scene_camera(tmp_path / "sc.json")
+    assert "image 5" in str(e.value) and "sc.json" in str(e.value)
+    assert bop.read_scene_camera(tmp_path / "sc.json", check_intrinsics=False)[5].depth_scale == depth_scale
+
+
 def test_scene_gt_and_info_round_trip(tmp_path):
     rng = np.random.default_rng(2)
     gt = {5: [bop.GtInstance(3, rand_pose(rng)), bop.GtInstance(3, rand_pose(rng))], 7: []}

@@ -430,3 +430,29 @@ def test_platform_selection(monkeypatch):
     monkeypatch.setenv("COSY_GL", "osmesa")  # OpenGL is already bound to EGL in this process
     with pytest.raises(CosyError, match="import cosy_cli.rendering first"):
         select_gl_platform()
+
+
+def test_an_optimiser_after_rendering_when_torch_brings_triton():
+    """torch's CUDA builds bring triton, whose LLVM segfaulted the process when loaded after
+    Mesa's (the first torch.optim optimiser after a render imports torch._dynamo, then triton):
+    rendering loads triton first. Runs in a fresh process; without triton (the locked CPU torch)
+    there is nothing to load and load_triton_first says so."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np, trimesh, torch\n"
+        "from cosy_cli.rendering import SceneRenderer\n"
+        "tri = trimesh.Trimesh([[-40.0, -40, 0], [40, -40, 0], [0, 40, 0]], [[0, 1, 2]], process=False)\n"
+        "T = np.eye(4); T[2, 3] = 500\n"
+        "with SceneRenderer({1: tri}, 64, 48, max_faces=None) as r:\n"
+        "    assert abs(r.render(np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]]), [1], T[None]).depth[24, 32] - 500) < 0.5\n"
+        "torch.optim.Adam(torch.nn.Linear(3, 3).parameters())\n"
+        "print('ok')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
+    if importlib.util.find_spec("triton") is None:
+        from cosy_cli.rendering.platform import load_triton_first
+
+        assert load_triton_first() is False

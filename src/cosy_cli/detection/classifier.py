@@ -311,9 +311,10 @@ def rescore(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, probs: np
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     scores = np.asarray(scores, dtype=np.float64).reshape(-1)
     labels = np.asarray(labels, dtype=np.int64).reshape(-1)
-    probs = np.asarray(probs, dtype=np.float64).reshape(len(boxes), -1)
     ids = np.asarray(list(obj_ids), dtype=np.int64)
     C = len(ids)
+    probs = np.asarray(probs, dtype=np.float64)
+    probs = probs.reshape(len(boxes), -1) if len(boxes) else probs.reshape(0, C + 1)  # an image without boxes
     if probs.shape[1] != C + 1:
         raise ValueError(f"probs must have {C + 1} columns (objects + background), got {probs.shape[1]}")
     p_obj = probs[:, :C]

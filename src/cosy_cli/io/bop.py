@@ -223,9 +223,25 @@ class SceneCamera:
     extra: dict = field(default_factory=dict)  # other keys, kept for round trips
 
 
-def read_scene_camera(path: str | Path, *, rotations: str = "repair") -> dict[int, SceneCamera]:
+def intrinsics_problem(K: np.ndarray, depth_scale: float = 1.0) -> str | None:
+    """Why a camera matrix K (3, 3) px and depth scale cannot be a pinhole camera (fx or fy <= 0, a
+    last row other than 0 0 1, depth_scale <= 0), or None. Every stage would otherwise divide by
+    fx or invert a singular K."""
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        return f"cam_K: fx and fy must be > 0, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
+    if np.abs(K[2] - [0.0, 0.0, 1.0]).max() > 1e-6:
+        return f"cam_K: last row is {' '.join(f'{v:g}' for v in K[2])}, expected 0 0 1"
+    if depth_scale <= 0:
+        return f"depth_scale must be > 0, got {depth_scale:g}"
+    return None
+
+
+def read_scene_camera(path: str | Path, *, rotations: str = "repair",
+                      check_intrinsics: bool = True) -> dict[int, SceneCamera]:
     """``scene_camera.json``: {im_id: SceneCamera}. ``cam_R_w2c`` rotations are checked and repaired
-    as :func:`repair_rotations` does with ``rotations`` ("repair", "keep_bad" or "raw")."""
+    as :func:`repair_rotations` does with ``rotations`` ("repair", "keep_bad" or "raw"). A K that
+    is no pinhole camera (:func:`intrinsics_problem`) is a CosyError naming the image, unless
+    ``check_intrinsics`` is False (``cosy validate``, which lists every such image itself)."""
     path = Path(path)
     data = _top_dict(load_json(path), path)
     out: dict[int, SceneCamera] = {}
@@ -234,6 +250,9 @@ def read_scene_camera(path: str | Path, *, rotations: str = "repair") -> dict[in
         where = f"image {key}"
         K = _numbers(_require(entry, "cam_K", path, where), 9, path, where, "cam_K").reshape(3, 3)
         depth_scale = float(_numbers(entry.get("depth_scale", 1.0), 1, path, where, "depth_scale")[0])
+        bad = intrinsics_problem(K, depth_scale) if check_intrinsics else None
+        if bad:
+            raise CosyError(f"{bad} (run cosy validate for every problem of the dataset)", path=path, where=where)
         T = None
         has_R, has_t = "cam_R_w2c" in entry, "cam_t_w2c" in entry
         if has_R != has_t:

@@ -60,13 +60,36 @@ def egl_delete_context_keep_display(self) -> None:
         self._egl_context = None
 
 
+def load_triton_first() -> bool:
+    """Load triton's native library now, before Mesa's software rasteriser loads its LLVM, when
+    triton is installed (it comes with torch's CUDA builds, also on machines without a GPU).
+    Both carry their own LLVM: triton loaded after an EGL/OSMesa context exists segfaults the
+    process (seen with torch 2.14.1+cu130 and Mesa 22.3's llvmpipe: the first ``torch.optim``
+    optimiser or ``torch.compile`` imports ``torch._dynamo``, which imports triton); loaded
+    before, both work. Returns whether triton is loaded. Without triton (torch's CPU builds):
+    nothing to do."""
+    if "triton" in sys.modules:
+        return True
+    import importlib.util
+
+    try:
+        if importlib.util.find_spec("triton") is None:
+            return False
+        import triton  # noqa: F401
+    except Exception:  # a broken triton is torch's problem, not rendering's: its import would fail later anyway
+        return False
+    return True
+
+
 def create_context(platform: str):
     """A current headless OpenGL context: ``(platform_object, release_function)``.
 
     The context renders into framebuffer objects only, so its own surface is 1 x 1. Releasing an
     EGL context destroys it but (unlike pyrender's EGL platform) does not ``eglTerminate`` the
-    display, which would break every other live context of the process.
+    display, which would break every other live context of the process. Loads triton first where
+    it is installed (:func:`load_triton_first`).
     """
+    load_triton_first()
     if platform == "egl":
         try:
             from pyrender.platforms import egl

@@ -18,12 +18,14 @@ single-sample); it applies this patch when created, for the second fix. Idempote
 
 from __future__ import annotations
 
-from .platform import egl_delete_context_keep_display, select_gl_platform
+from .platform import egl_delete_context_keep_display, load_triton_first, select_gl_platform
 
 
 def patch_pyrender() -> None:
-    """Apply both fixes (see the module docstring) once per process."""
+    """Apply both fixes (see the module docstring) once per process; also loads triton before any
+    GL context where it is installed (:func:`~cosy_cli.rendering.platform.load_triton_first`)."""
     platform = select_gl_platform()
+    load_triton_first()
     import pyrender.renderer as pr
 
     if getattr(pr, "_cosy_patched", False):

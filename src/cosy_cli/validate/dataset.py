@@ -509,7 +509,7 @@ class _Validator:
         cam_path = ds.scene_file(scene_id, "scene_camera")
         sensor = _sensor_suffix(cam_path, "scene_camera")
         gt_path, info_path = ds.scene_file(scene_id, "scene_gt"), ds.scene_file(scene_id, "scene_gt_info")
-        cams = self._read(bop.read_scene_camera, cam_path, rotations="keep_bad")
+        cams = self._read(bop.read_scene_camera, cam_path, rotations="keep_bad", check_intrinsics=False)
         gt = info = None
         has_gt, has_info = gt_path.is_file(), info_path.is_file()
         if has_gt or has_info:
