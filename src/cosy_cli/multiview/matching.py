@@ -232,9 +232,10 @@ class LabelTable:
         for l in range(L):
             seeds = farthest_point_indices(X[l], nc)
             assign = np.argmin(np.linalg.norm(X[l][:, None] - X[l][seeds][None], axis=-1), axis=1)
-            for k in range(nc):
-                C[l, k] = X[l][assign == k].mean(axis=0)
-                W[l, k] = np.mean(assign == k)
+            for k in range(nc):  # a cluster with no point (coincident points): weight 0, centre its seed, not NaN
+                members = assign == k
+                C[l, k] = X[l][members].mean(axis=0) if members.any() else X[l][seeds[k]]
+                W[l, k] = np.mean(members)
         self.cluster_centers, self.cluster_w = C, W
         # symmetry axes (continuous symmetries): direction, a point, and whether some symmetry
         # reverses the axis; used only where every symmetry maps the axis onto itself

@@ -206,7 +206,7 @@ def simulate_candidates(ds: BopDataset, noise: CandidateNoise, seed: int = 0,
                     kind = "gross"
                     T[:3, :3] = random_rotations(1, rng)[0]
                     d = rng.normal(size=3)
-                    d -= d.dot(T[:3, 3]) / T[:3, 3].dot(T[:3, 3]) * T[:3, 3]
+                    d -= d.dot(T[:3, 3]) / max(T[:3, 3].dot(T[:3, 3]), 1e-12) * T[:3, 3]  # a GT at the camera centre: any d
                     d /= max(np.linalg.norm(d), 1e-9)
                     T[:3, 3] = T[:3, 3] + d * diam * rng.uniform(0.5, 1.5)
                     T[:3, 3] *= 1.0 + 0.1 * rng.normal()
