@@ -223,17 +223,30 @@ class SceneCamera:
     extra: dict = field(default_factory=dict)  # other keys, kept for round trips
 
 
-def intrinsics_problem(K: np.ndarray, depth_scale: float = 1.0) -> str | None:
-    """Why a camera matrix K (3, 3) px and depth scale cannot be a pinhole camera (fx or fy <= 0, a
-    last row other than 0 0 1, depth_scale <= 0), or None. Every stage would otherwise divide by
-    fx or invert a singular K."""
+def focal_problem(K: np.ndarray) -> str | None:
+    """Why K (3, 3) px has no usable focal lengths (fx or fy <= 0), or None."""
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return f"cam_K: fx and fy must be > 0, got fx={K[0, 0]:g}, fy={K[1, 1]:g}"
-    if np.abs(K[2] - [0.0, 0.0, 1.0]).max() > 1e-6:
-        return f"cam_K: last row is {' '.join(f'{v:g}' for v in K[2])}, expected 0 0 1"
-    if depth_scale <= 0:
-        return f"depth_scale must be > 0, got {depth_scale:g}"
     return None
+
+
+def last_row_problem(K: np.ndarray) -> str | None:
+    """Why K (3, 3) is no pinhole matrix (a last row other than 0 0 1, e.g. singular), or None."""
+    if np.abs(K[2] - [0.0, 0.0, 1.0]).max() > 1e-6:
+        return f"cam_K: last row is {' '.join(f'{float(v):.6g}' for v in K[2])}, expected 0 0 1"
+    return None
+
+
+def depth_scale_problem(depth_scale: float) -> str | None:
+    """Why a depth scale (mm per depth unit) is unusable (<= 0), or None."""
+    return f"depth_scale must be > 0, got {depth_scale:g}" if depth_scale <= 0 else None
+
+
+def intrinsics_problem(K: np.ndarray, depth_scale: float = 1.0) -> str | None:
+    """The first reason why a camera matrix K (3, 3) px and depth scale cannot be a pinhole camera
+    (:func:`focal_problem`, :func:`last_row_problem`, :func:`depth_scale_problem`), or None.
+    Every stage would otherwise divide by fx or invert a singular K."""
+    return focal_problem(K) or last_row_problem(K) or depth_scale_problem(depth_scale)
 
 
 def read_scene_camera(path: str | Path, *, rotations: str = "repair",

@@ -44,6 +44,7 @@ import numpy as np
 from ..geometry.poses import invert, rotation_angle
 
 
+OPENCV_REFUSED = "OpenCV refused the input"  # in a PairPose's failure when a cv2.error ended the pair
 PARALLAX_QUANTILE = 0.75  # parallax_px: this quantile of the matches' distances to the best homography
 
 
@@ -182,7 +183,7 @@ def opencv_failure(what: str, e: Exception) -> str:
     msg = " ".join(str(e).split())
     if ") " in msg and "error:" in msg:  # "OpenCV(5.1.0) /path/file.cpp:1601: error: (-215:...) ... in function 'f'"
         msg = msg[msg.index("error:") + len("error:"):].strip()
-    return f"{what}: OpenCV refused the input ({msg})"
+    return f"{what}: {OPENCV_REFUSED} ({msg})"
 
 
 def parallax_px(xa: np.ndarray, xb: np.ndarray) -> float:

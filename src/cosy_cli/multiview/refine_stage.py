@@ -108,6 +108,7 @@ from ..io.cache import file_sha1, reuse_existing_output
 from ..io.dataset import BopDataset
 from ..objects.symmetries import symmetry_set
 from . import bundle_adjustment as ba
+from .features import OPENCV_REFUSED
 from . import placement
 
 FORMAT_VERSION = 1
@@ -820,9 +821,8 @@ def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams:
 
 def _pair_record(pair, used: bool) -> dict:
     """scene.json's record of a view's image pair with the gauge view (``stats.feature_cameras``)."""
-    rec = {"inliers": 0 if pair is None else pair.n_inliers, "used": used,
-           "parallax_px": 0.0 if pair is None else round(pair.parallax_px, 2)}
-    if pair is not None and pair.failure:
+    rec = {"inliers": pair.n_inliers, "used": used, "parallax_px": round(pair.parallax_px, 2)}
+    if pair.failure:
         rec["no_pose"] = pair.failure  # why the images gave no relative pose (too few matches, OpenCV refused)
     return rec
 
@@ -1112,7 +1112,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "feature_cameras_used": int(sum(v["used"] for r in results
                                         for v in r["stats"].get("feature_cameras", {}).get("views", {}).values())),
         # image pairs on which OpenCV refused the features (degenerate matches): no pose, the reason in scene.json
-        "feature_pairs_refused": int(sum("OpenCV refused" in v.get("no_pose", "") for r in results
+        "feature_pairs_refused": int(sum(OPENCV_REFUSED in v.get("no_pose", "") for r in results
                                          for v in r["stats"].get("feature_cameras", {}).get("views", {}).values())),
         "time_per_group_ms": float(times.mean() * 1e3) if len(times) else 0.0,
         "max_time_per_group_ms": float(times.max() * 1e3) if len(times) else 0.0,

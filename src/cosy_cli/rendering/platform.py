@@ -18,6 +18,7 @@ any other value is replaced by ``egl`` (cosy never opens windows).
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import sys
 
@@ -60,6 +61,7 @@ def egl_delete_context_keep_display(self) -> None:
         self._egl_context = None
 
 
+@functools.cache  # every renderer asks; the answer is the process's
 def load_triton_first() -> bool:
     """Load triton's native library now, before Mesa's software rasteriser loads its LLVM, when
     triton is installed (it comes with torch's CUDA builds, also on machines without a GPU).

@@ -761,18 +761,20 @@ class _Validator:
         ids = np.array(list(cams))
         K = np.stack([c.K for c in cams.values()])
         ds_ = np.array([c.depth_scale for c in cams.values()])
-        for i in np.flatnonzero((K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)):
-            p.add(cam_path, f"image {ids[i]}", f"cam_K: fx and fy must be > 0, got fx={K[i, 0, 0]:g}, fy={K[i, 1, 1]:g}",
-                  check="cam_K")
-        for i in np.flatnonzero(np.abs(K[:, 2] - [0, 0, 1]).max(1) > 1e-6):
-            p.add(cam_path, f"image {ids[i]}", f"cam_K: last row is {_vec(K[i, 2])}, expected 0 0 1", check="cam_K")
+        for problem in (bop.focal_problem, bop.last_row_problem):  # the reader's checks, here for every image
+            for i in range(len(ids)):
+                msg = problem(K[i])
+                if msg:
+                    p.add(cam_path, f"image {ids[i]}", msg, check="cam_K")
         if size is not None:
             for i in range(len(ids)):
                 msg = self._pp_problem(K[i], size)
                 if msg:
                     p.add(cam_path, f"image {ids[i]}", "cam_K: " + msg, check="principal point")
-        for i in np.flatnonzero(ds_ <= 0):
-            p.add(cam_path, f"image {ids[i]}", f"depth_scale must be > 0, got {ds_[i]:g}", check="depth_scale")
+        for i in range(len(ids)):
+            msg = bop.depth_scale_problem(ds_[i])
+            if msg:
+                p.add(cam_path, f"image {ids[i]}", msg, check="depth_scale")
         posed = [(im, c.T_cam_world) for im, c in cams.items() if c.T_cam_world is not None]
         if posed:
             R = np.stack([T[:3, :3] for _, T in posed])
