@@ -4,7 +4,7 @@ batched over the detections of one 640x480 image (EfficientNet-B3, 240x320 crops
     OPENBLAS_NUM_THREADS=1 PYOPENGL_PLATFORM=egl .venv/bin/python benchmarks/bench_cosypose.py \\
         --coarse COARSE(.onnx|run dir) --refiner REFINER(.onnx|run dir) [--providers cuda] [--threads 2]
 
-Defaults: the fixture run directories (/work/shared/fixtures/cosypose_networks, random weights: the
+Defaults: the fixture run directories (../shared/fixtures/cosypose_networks beside the repository, random weights: the
 same compute as the published networks), exported to ONNX in a temporary folder, their meshes and
 one of their images. Prints ms per detection for 1 and 6 detections and the split between the
 network, rendering and cropping.
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-FIX = Path("/work/shared/fixtures/cosypose_networks")
+FIX = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "cosypose_networks"
 
 
 def main():

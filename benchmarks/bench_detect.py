@@ -15,7 +15,7 @@ fresh set. Honest figures need a seed that nothing else used: the detector's tra
 its own random scenes (never `cosy synth`), one seed follows training and picks checkpoints
 (4242 for the shipped detector), and the figures reported in the README and the model card are
 measured on another one that no decision saw (777777). Without --seed: --dataset, else
-/work/heldout, else /tmp/cosy_heldout (`cosy synth --seed 101`, the old default; seed 101 was
+$COSY_HELDOUT, else /tmp/cosy_heldout (`cosy synth --seed 101`, the old default; seed 101 was
 used to follow the first detector's training).
 
 Detections are kept from score 0.05 for AP (COCO practice: AP ranks by score); AP50 is also
@@ -55,7 +55,7 @@ from cosy_cli.errors import CosyError  # noqa: E402
 from cosy_cli.evaluation import detection_ap  # noqa: E402
 from cosy_cli.io.dataset import BopDataset  # noqa: E402
 
-DEFAULT_DATASETS = (Path("/work/heldout"), Path(tempfile.gettempdir()) / "cosy_heldout")
+DEFAULT_DATASETS = tuple(Path(p) for p in (os.environ.get("COSY_HELDOUT"), Path(tempfile.gettempdir()) / "cosy_heldout") if p)
 FOLLOW_SEED = 4242     # follows training, chooses checkpoints and settings
 REPORT_SEED = 777777   # the figures reported (README, model card); never used for a decision
 

@@ -1,6 +1,6 @@
 """CosyPose's published networks: run directories, the network, and every step of the original
 stage-1 path, checked against the original code's recorded inputs and outputs
-(/work/shared/fixtures/cosypose_networks, see its README for the tolerances used here).
+(../shared/fixtures/cosypose_networks beside the repository, see its README for the tolerances used here).
 
 Poses: the fixture is in metres, cosy in mm (converted here)."""
 
@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-FIX = Path(os.environ.get("COSY_COSYPOSE_FIXTURES", "/work/shared/fixtures/cosypose_networks"))
+FIX = Path(os.environ.get("COSY_COSYPOSE_FIXTURES",
+                          Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "cosypose_networks"))
 pytestmark = pytest.mark.skipif(not (FIX / "case.npz").is_file(), reason="CosyPose network fixtures not present")
 
 RUNS = {"refiner": "run_b3", "coarse": "run_b3_coarse"}

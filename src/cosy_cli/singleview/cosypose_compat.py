@@ -3,7 +3,7 @@
 CosyPose (Labbé et al. 2020) published its coarse and refiner networks as *run directories*
 (``config.yaml`` + ``checkpoint.pth.tar``). This module reads them without the original code and
 reproduces, on a CPU, exactly what the original ``PosePredictor`` does with them (the fixture
-``/work/shared/fixtures/cosypose_networks`` and ``tests/test_cosypose_networks.py`` check every
+``../shared/fixtures/cosypose_networks`` and ``tests/test_cosypose_networks.py`` check every
 step against the original's own outputs):
 
 * :func:`read_run` parses ``config.yaml`` (a YAML-dumped ``argparse.Namespace`` with python tags)
