@@ -1,14 +1,24 @@
-"""Multi-view pipeline on a synthetic BOP dataset: simulated candidates -> cosy match -> cosy refine.
+"""Multi-view pipeline on synthetic BOP datasets: simulated candidates -> cosy match -> cosy refine.
 
-Prints the figures of the `cosy refine` issue, measured against the dataset's ground truth:
-recall of ADD-S < 0.1 diameter over (instance, view) for instances matched in >= 2 views,
-mean ADD-S of the matched input candidates vs the refined predictions in the same views (only
-pairs under 0.5 diameter count, as in the paper's ablation), median relative camera error, the
-share of output objects that are not a real instance, and the wall time of the two stages.
+Prints the figures of the multi-view issues, measured against the datasets' ground truth, summed
+over every (dataset, candidate seed):
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_pipeline.py [--dataset DIR] [--seed 0]
+* view pairs (``view_pairs.csv``): pairs linked with >= 3 inliers and the relative rotation error
+  of their poses (share over 10 deg, 95th percentile, worst, with its inlier count); where the
+  file has a ``link`` column, the same over every linked pair (1-2-object links included);
+* refine: recall of ADD-S < 0.1 d over (instance, view) for instances matched in >= 2 views; mean
+  ADD-S of the matched input candidates vs the refined predictions in the same views (pairs under
+  0.5 d, as in the paper's ablation); median relative camera error; output objects that are not
+  a real instance (median centre error over the placed views > 0.1 d): *false objects*;
+* wall time of the two commands (whole processes, start-up included), per group.
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_pipeline.py [--dataset DIR ...] [--seeds 0 1]
+        [--p-gross 0.05] [--src NAME=PATH ...]
 
 Without --dataset it generates 5 scenes x 6 views x 8 objects at 640x480 (seed 1) first.
+``--src NAME=PATH``: also run the stages with another checkout's ``src`` folder first on the
+``PYTHONPATH`` (e.g. a ``git worktree`` of the commit before a change), interleaved with this one
+in the same run, so that quality and timings are compared side by side.
 """
 
 from __future__ import annotations
@@ -31,7 +41,7 @@ import pandas as pd  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from cosy_cli.geometry import invert, relative_pose_error, transform_points  # noqa: E402
-from cosy_cli.io import BopDataset, read_results  # noqa: E402
+from cosy_cli.io import BopDataset, bop, read_results  # noqa: E402
 from cosy_cli.objects import ObjectDatabase  # noqa: E402
 
 COSY = [str(Path(sys.executable).parent / "cosy")]
@@ -44,39 +54,38 @@ def adds_mm(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray) -> float:
     return float(cKDTree(est).query(gt, k=1)[0].mean())
 
 
-def run(cmd: list[str]) -> float:
+def run(cmd: list[str], src: str | None = None) -> float:
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env)
     return time.perf_counter() - t0
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--dataset", type=Path)
-    ap.add_argument("--seed", type=int, default=0, help="seed of the simulated candidates")
-    ap.add_argument("--profile", default="realistic")
-    args = ap.parse_args(argv)
-    work = Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
-    data = args.dataset
-    if data is None:
-        data = work / "synth"
-        run(COSY + ["synth", "--out", str(data), "--scenes", "5", "--views", "6", "--objects", "8", "--seed", "1",
-                    "--quiet"])
-    cands, side = work / "cands.csv", work / "cands_gt.csv"
-    run(COSY + ["synth-candidates", "--dataset", str(data), "--out", str(cands), "--gt-out", str(side),
-                "--seed", str(args.seed), "--profile", args.profile])
-    t_match = run(COSY + ["match", "--dataset", str(data), "--candidates", str(cands), "--out", str(work / "match")])
-    t_refine = run(COSY + ["refine", "--dataset", str(data), "--matches", str(work / "match"),
-                           "--out", str(work / "refine")])
+def view_pair_errors(match_dir: Path, ds: BopDataset) -> pd.DataFrame:
+    """view_pairs.csv with the rotation (deg) and translation (mm) error of every pair's pose."""
+    vp = pd.read_csv(match_dir / "view_pairs.csv")
+    rot, tr = [], []
+    for r in vp.itertuples():
+        cams = ds.scene_camera(int(r.scene_id))
+        T_gt = cams[int(r.im_id_a)].T_cam_world @ invert(cams[int(r.im_id_b)].T_cam_world)
+        T = bop.pose_from_Rt(np.array(r.R.split(), float), np.array(r.t.split(), float))
+        e_r, e_t = relative_pose_error(T_gt, T)
+        rot.append(float(e_r))
+        tr.append(float(e_t))
+    return vp.assign(rot_err_deg=rot, trans_err_mm=tr)
 
+
+def refine_metrics(data: Path, cands: Path, side: Path, match_dir: Path, refine_dir: Path) -> dict:
     ds = BopDataset(data, "test")
     db = ObjectDatabase.from_models_dir(ds.models_dir)
     pts = {o.obj_id: o.vertices for o in db}
     cand = read_results(cands)
     sidecar = pd.read_csv(side)
-    matches = pd.read_csv(work / "match" / "matches.csv")
-    pred = read_results(work / "refine" / "predictions.csv")
-    scene = json.loads((work / "refine" / "scene.json").read_text())
+    matches = pd.read_csv(match_dir / "matches.csv")
+    pred = read_results(refine_dir / "predictions.csv")
+    scene = json.loads((refine_dir / "scene.json").read_text())
 
     # instances matched in >= 2 views: their correct candidates share one object id
     m = matches.merge(sidecar[["cand_id", "instance_id", "gt_index", "gt_obj_id", "kind"]], on="cand_id")
@@ -106,8 +115,8 @@ def main(argv=None) -> None:
                         in_err.append(e_in)
                         out_err.append(best)
 
-    # cameras: relative poses of every pair of placed cameras vs GT
-    rot, trans, not_real, n_obj = [], [], 0, 0
+    # cameras: relative poses of every pair of placed cameras vs GT; objects that are no instance
+    rot, trans, false_obj = [], [], []
     for g in scene["groups"]:
         cams = ds.scene_camera(g["scene_id"])
         placed = {c["im_id"]: np.array(c["T_world_cam"]) for c in g["cameras"]}
@@ -119,25 +128,93 @@ def main(argv=None) -> None:
             trans.append(t)
         gts = ds.scene_gt(g["scene_id"])
         for o in g["objects"]:
-            n_obj += 1
             errs = []
             for im, Twc in placed.items():
                 Tco = invert(Twc) @ np.array(o["T_world_obj"])
                 same = [np.linalg.norm(Tco[:3, 3] - x.T_cam_obj[:3, 3]) for x in gts[im] if x.obj_id == o["obj_id"]]
                 errs.append(min(same) if same else np.inf)
-            not_real += np.median(errs) > 0.1 * db[o["obj_id"]].diameter
+            false_obj.append(bool(np.median(errs) > 0.1 * db[o["obj_id"]].diameter))
+    return {"groups": len(scene["groups"]), "recall_hits": recall_hits, "targets": n_targets, "in_err": in_err,
+            "out_err": out_err, "cam_rot": rot, "cam_trans": trans, "false_obj": false_obj}
 
-    n_groups = len(scene["groups"])
-    print(f"# pipeline on {data} ({n_groups} groups, {len(cand)} {args.profile} candidates, seed {args.seed})")
-    print(f"recall ADD-S < 0.1 d over (instance, view), instances matched in >= 2 views: "
-          f"{recall_hits / max(n_targets, 1):.3f} ({recall_hits}/{n_targets})")
-    print(f"mean ADD-S, matched input candidates -> refined predictions, same views: "
-          f"{np.mean(in_err):.2f} -> {np.mean(out_err):.2f} mm ({100 * (1 - np.mean(out_err) / np.mean(in_err)):.0f} % lower; "
-          f"medians {np.median(in_err):.2f} -> {np.median(out_err):.2f})")
-    print(f"relative camera error, median: {np.median(rot):.2f} deg, {np.median(trans):.1f} mm "
-          f"(90th pct {np.percentile(rot, 90):.2f} deg, {np.percentile(trans, 90):.1f} mm; {len(rot)} pairs)")
-    print(f"output objects that are not a real instance: {not_real}/{n_obj} ({100 * not_real / max(n_obj, 1):.1f} %)")
-    print(f"wall time, whole commands with start-up: match {t_match:.2f} s, refine {t_refine:.2f} s")
+
+def one_run(data: Path, work: Path, seed: int, args, src: str | None) -> dict:
+    """synth-candidates (shared by every implementation), then match and refine with ``src``."""
+    tag = f"{data.name}_{seed}"
+    cands, side = work / f"cands_{tag}.csv", work / f"cands_{tag}_gt.csv"
+    if not cands.exists():
+        knobs = ["--p-gross", str(args.p_gross)] if args.p_gross is not None else []
+        run(COSY + ["synth-candidates", "--dataset", str(data), "--out", str(cands), "--gt-out", str(side),
+                    "--seed", str(seed), "--profile", args.profile] + knobs)
+    name = "head" if src is None else Path(src).parent.name
+    md, rd = work / f"match_{tag}_{name}", work / f"refine_{tag}_{name}"
+    t_match = run(COSY + ["match", "--dataset", str(data), "--candidates", str(cands), "--out", str(md),
+                          "--overwrite"], src)
+    t_refine = run(COSY + ["refine", "--dataset", str(data), "--matches", str(md), "--out", str(rd),
+                           "--overwrite"], src)
+    met = refine_metrics(data, cands, side, md, rd)
+    met["vp"] = view_pair_errors(md, BopDataset(data, "test"))
+    met["t_match"], met["t_refine"] = t_match, t_refine
+    return met
+
+
+def summarise(name: str, runs: list[dict]) -> None:
+    vp = pd.concat([r["vp"] for r in runs], ignore_index=True)
+    n_groups = sum(r["groups"] for r in runs)
+    print(f"== {name}: {len(runs)} runs, {n_groups} groups")
+    sets = [("linked with >= 3 inliers", vp[vp.n_inliers >= 3])]
+    if "link" in vp:
+        sets.append(("every linked pair", vp[vp.link != "none"]))
+    for what, lk in sets:
+        r = lk.rot_err_deg.to_numpy()
+        worst = lk.iloc[int(np.argmax(r))] if len(r) else None
+        print(f"view pairs {what}: {len(lk)} of {len(vp)}; over 10 deg {(r > 10).sum()} "
+              f"({100 * (r > 10).mean() if len(r) else 0:.1f} %), 95th pct {np.percentile(r, 95) if len(r) else 0:.1f} "
+              f"deg, worst {r.max() if len(r) else 0:.1f} deg"
+              + (f" ({int(worst.n_inliers)} inliers)" if worst is not None else ""))
+    hits, tg = sum(r["recall_hits"] for r in runs), sum(r["targets"] for r in runs)
+    a, b = np.concatenate([r["in_err"] for r in runs]), np.concatenate([r["out_err"] for r in runs])
+    rot, tr = np.concatenate([r["cam_rot"] for r in runs]), np.concatenate([r["cam_trans"] for r in runs])
+    fo = np.concatenate([r["false_obj"] for r in runs])
+    print(f"recall ADD-S < 0.1 d, instances matched in >= 2 views: {hits / max(tg, 1):.3f} ({hits}/{tg})")
+    print(f"mean ADD-S, matched input candidates -> refined, same views: {a.mean():.2f} -> {b.mean():.2f} mm "
+          f"({100 * (1 - b.mean() / a.mean()):.1f} % lower)")
+    print(f"relative camera error, median: {np.median(rot):.2f} deg, {np.median(tr):.1f} mm ({len(rot)} pairs)")
+    print(f"false objects: {int(fo.sum())}/{len(fo)} ({100 * fo.mean():.1f} %)")
+    tm = np.array([r["t_match"] / r["groups"] for r in runs]) * 1e3
+    trf = np.array([r["t_refine"] / r["groups"] for r in runs]) * 1e3
+    print(f"wall time per group, whole commands with start-up: match {np.median(tm):.1f} ms, "
+          f"refine {np.median(trf):.1f} ms (medians over runs)")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dataset", type=Path, nargs="*")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds of the simulated candidates")
+    ap.add_argument("--profile", default="realistic")
+    ap.add_argument("--p-gross", type=float, default=None, help="probability of a gross error (profile default)")
+    ap.add_argument("--src", action="append", default=[], help="NAME=PATH of another checkout's src folder")
+    ap.add_argument("--work", type=Path, help="keep the work files here")
+    args = ap.parse_args(argv)
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
+    work.mkdir(parents=True, exist_ok=True)
+    datasets = args.dataset
+    if not datasets:
+        data = work / "synth"
+        if not data.exists():
+            run(COSY + ["synth", "--out", str(data), "--scenes", "5", "--views", "6", "--objects", "8", "--seed", "1",
+                        "--quiet"])
+        datasets = [data]
+    impls = [("this checkout", None)] + [tuple(s.split("=", 1)) for s in args.src]
+    runs: dict[str, list] = {n: [] for n, _ in impls}
+    for data in datasets:
+        for seed in args.seeds:
+            for name, src in impls:  # interleaved: the same machine load for every implementation
+                runs[name].append(one_run(Path(data), work, seed, args, src))
+    print(f"# pipeline on {', '.join(str(d) for d in datasets)}; candidates {args.profile}"
+          + (f" p_gross={args.p_gross}" if args.p_gross is not None else "") + f", seeds {args.seeds}")
+    for name, _ in impls:
+        summarise(name, runs[name])
 
 
 if __name__ == "__main__":

@@ -340,9 +340,21 @@ def test_outputs_are_self_describing(tables, tmp_path):
     copy = bop.read_results(out / "candidates.csv")
     assert np.allclose(copy.T_cam_obj, cands.T_cam_obj, atol=1e-6)
     vp = pd.read_csv(out / "view_pairs.csv")
-    assert list(vp.columns) == ["scene_id", "group_id", "im_id_a", "im_id_b", "n_inliers", "R", "t"]
+    assert list(vp.columns) == ["scene_id", "group_id", "im_id_a", "im_id_b", "n_inliers", "R", "t", "link",
+                                "fit_residual_mm"]
     assert len(vp) == 3 * 15 and (vp.im_id_a < vp.im_id_b).all()
     doc = json.loads((out / "groups.json").read_text())
+    # how each pair was linked, and its fit residual (RMS of D_l over its associations) as groups.json says
+    by_pair = {(g["scene_id"], p["im_id_a"], p["im_id_b"]): p for g in doc["groups"] for p in g["view_pairs"]}
+    assert set(vp.link) <= {"none", "ransac", "two objects", "one object"} and (vp.link == "ransac").sum() >= 40
+    for r in vp.itertuples():
+        p = by_pair[(r.scene_id, r.im_id_a, r.im_id_b)]
+        assert r.link == p["link"]
+        if r.link != "none":  # same-label associations (look-alikes' associations do not count as inliers)
+            lab = m.set_index("cand_id").obj_id
+            d = np.array([a[2] for a in p["associations"] if lab[a[0]] == lab[a[1]]])
+            assert len(d) == r.n_inliers and r.fit_residual_mm == pytest.approx(np.sqrt(np.mean(d ** 2)), abs=2e-3)
+        assert np.isnan(r.fit_residual_mm) == (r.n_inliers == 0)
     for k in ("version", "conf", "dataset", "split", "candidates", "known_cameras", "groups"):
         assert k in doc
     assert doc["conf"]["threshold_mm"] == 20.0 and doc["conf"]["ransac_iterations"] == 2000

@@ -30,8 +30,9 @@ matching (the paper's, unchanged); the grouped labels' candidate pairs then only
 under those poses (``cross_label_hypotheses`` lets them make RANSAC hypotheses too).
 
 The vote (:func:`vote_labels`): each member adds ``score x fit`` to its own label, fit =
-``exp(-(D / sigma)^2)`` with D the mean symmetric distance of its kept associations and sigma half
-their inlier threshold; the object takes the label with the largest sum (groups.json records the
+``exp(-(D / sigma)^2)`` with D the mean symmetric distance of its kept associations and sigma
+their inlier threshold (half of it until issue 29: a look-alike that happened to agree closely
+outvoted two right candidates); the object takes the label with the largest sum (groups.json records the
 votes). What the members' poses are then worth for ``cosy refine``: a member of another label
 ``b`` in an object voted ``a`` is a measurement of the object's pose when the two models' frames
 agree (``frames_agree``: the identity fits them within ``AUTO_REL``; cosy's look-alikes 6/7); it

@@ -390,7 +390,8 @@ def _collapse(res: GroupResult, rank: np.ndarray, det: np.ndarray,
         linked=res.linked, n_hypotheses=res.n_hypotheses, edges=det[res.edges] if len(res.edges) else res.edges,
         edge_dist=res.edge_dist, edge_pair=res.edge_pair, edge_kept=res.edge_kept, threshold_mm=res.threshold_mm,
         link_kind=res.link_kind, residual_scale=res.residual_scale,
-        cand_fit=None if res.cand_fit is None else res.cand_fit[chosen]), chosen, rank[chosen]
+        cand_fit=None if res.cand_fit is None else res.cand_fit[chosen], fit_residual_mm=res.fit_residual_mm,
+        z_mm=res.z_mm), chosen, rank[chosen]
 
 
 def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = True, hyps=None):
@@ -549,14 +550,18 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
                      + (f",{hyp_rank[i]}" if with_hyp else ""))
     # plain writes: the whole folder is renamed into place at the end (atomic_dir)
     (tmp / "matches.csv").write_text("\n".join(lines) + "\n")
-    vlines = ["scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t"]
+    vlines = ["scene_id,group_id,im_id_a,im_id_b,n_inliers,R,t,link,fit_residual_mm"]
     out_groups = []
     for gi, g in enumerate(groups):
         res, idx, im_ids = g["result"], g["cand_idx"], g["im_ids"]
         pairs = []
         for p, (a, b) in enumerate(res.pair_views):
             R, t = _fmt_pose(res.T_ab[p])
-            vlines.append(f"{g['scene_id']},{g['group_id']},{im_ids[a]},{im_ids[b]},{res.n_inliers[p]},{R},{t}")
+            link = LINK_NAMES[int(res.link_kind[p])] if res.link_kind is not None else \
+                ("ransac" if res.linked[p] else "none")
+            fr = np.nan if res.fit_residual_mm is None else float(res.fit_residual_mm[p])
+            vlines.append(f"{g['scene_id']},{g['group_id']},{im_ids[a]},{im_ids[b]},{res.n_inliers[p]},{R},{t},{link},"
+                          + (f"{fr:.3f}" if np.isfinite(fr) else ""))
             e = np.flatnonzero(res.edge_pair == p)
             pairs.append({
                 "im_id_a": im_ids[a], "im_id_b": im_ids[b], "n_inliers": int(res.n_inliers[p]),
