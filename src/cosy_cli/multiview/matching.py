@@ -1032,17 +1032,24 @@ class _Group:
         Ra, Rb = TS[:, :3, :3], Tj[:, :3, :3]
         full = ~tab.continuous[l]
         Rk = np.matmul(Ra, np.swapaxes(Rb, -1, -2))
+        Rfull = Rk * full[:, None, None]
+        Bfull = np.add.reduceat(Rfull, starts)
         n_full = np.add.reduceat(full.astype(np.int64), starts)
-        R0 = _project_so3(np.add.reduceat(Rk * full[:, None, None], starts) + 1e-12 * np.eye(3))
-        ang = _rot_angle(np.matmul(np.swapaxes(R0[seg], -1, -2), Rk))
-        spread = _median_by(np.where(full, ang, np.inf)[full], seg[full], len(vps)) / 1.5
-        sig_r = np.where(n_full >= 3, np.clip(spread, SIGMA_R_MIN, SIGMA_R_MAX), SIGMA_R_DEFAULT)
+        sig_r = np.full(len(vps), SIGMA_R_DEFAULT)
+        spread_from = np.flatnonzero(n_full >= 3)  # the pair's own rotation spread where 3 objects show it
+        if len(spread_from):
+            R0 = _project_so3(Bfull[spread_from])
+            pos = np.full(len(vps), -1)
+            pos[spread_from] = np.arange(len(spread_from))
+            e = np.flatnonzero(full & (pos[seg] >= 0))
+            ang = _rot_angle(np.matmul(np.swapaxes(R0[pos[seg[e]]], -1, -2), Rk[e]))
+            spread = _median_by(ang, seg[e], len(vps)) / 1.5
+            sig_r[spread_from] = np.clip(spread[spread_from], SIGMA_R_MIN, SIGMA_R_MAX)
         ax = tab.continuous[l] & tab.has_axis[l]
         a = tab.axis_dir[l]
         ua = np.einsum("eij,ej->ei", Ra, a) * ax[:, None]
         ub = np.einsum("eij,ej->ei", Rb, a)
-        Bk = Rk * full[:, None, None] + ua[:, :, None] * ub[:, None, :]
-        B = np.add.reduceat(Bk, starts) / (sig_r ** 2)[:, None, None]
+        B = (Bfull + np.add.reduceat(ua[:, :, None] * ub[:, None, :], starts)) / (sig_r ** 2)[:, None, None]
         c = tab.centers[l]
         ca = np.einsum("eij,ej->ei", Ra, c) + TS[:, :3, 3]
         cb = np.einsum("eij,ej->ei", Rb, c) + Tj[:, :3, 3]
@@ -1051,9 +1058,9 @@ class _Group:
         da, db = ca - ma[seg], cb - mb[seg]
         H = np.add.reduceat(da[:, :, None] * db[:, None, :], starts)
         B += H / (np.maximum(sigma_t[vps], 1e-6) ** 2)[:, None, None]
-        sv = np.linalg.svd(B, compute_uv=False)
+        U, sv, Vt = np.linalg.svd(B)
         good = sv[:, 1] > 1e-9 * np.maximum(sv[:, 0], 1e-300)  # two independent directions at least
-        R = _project_so3(B)
+        R = _project_so3(B, (U, Vt))
         t = ma - np.einsum("kij,kj->ki", R, mb)
         T = np.tile(np.eye(4), (len(vps), 1, 1))
         T[:, :3, :3], T[:, :3, 3] = R, t
@@ -1136,9 +1143,9 @@ def _rot_angle(R: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
-def _project_so3(A: np.ndarray) -> np.ndarray:
-    """Closest rotations (Frobenius) to matrices A (k, 3, 3)."""
-    U, _, Vt = np.linalg.svd(A)
+def _project_so3(A: np.ndarray, svd=None) -> np.ndarray:
+    """Closest rotations (Frobenius) to matrices A (k, 3, 3) (``svd``: their (U, Vt) if known)."""
+    U, Vt = svd if svd is not None else np.linalg.svd(A)[::2]
     d = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
     U = U * np.stack([np.ones_like(d), np.ones_like(d), d], -1)[:, None, :]
     return U @ Vt
