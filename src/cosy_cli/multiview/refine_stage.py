@@ -624,19 +624,20 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         agree = np.nan_to_num(res.cand_error_px, nan=np.inf) < 0.5 * conf["loss_threshold_px"]
         n_unsupported, n_merged, n_overlap = 0, int((~keep & (into >= 0)).sum()), int((into < 0).sum())
         for k in np.flatnonzero(keep):
-            mk = np.isin(cand_obj, np.flatnonzero(into == k))
+            mk = (into == k)[cand_obj]
             if len(np.unique(cv[mk & agree])) < conf["min_agreeing"]:
                 keep[k] = False
                 into[into == k] = -1
                 n_unsupported += 1
         view_ok = np.zeros(len(views), dtype=bool)
-        view_ok[cv[agree & np.isin(cand_obj, np.flatnonzero(keep))]] = True
+        view_ok[cv[agree & keep[cand_obj]]] = True
         T_cam_world = np.linalg.inv(Twc)  # (V, 4, 4): the views' extrinsics, for the view guard
         for k, o in enumerate(objs):
             if not keep[k]:
                 continue
             merged = np.flatnonzero(into == k)
-            ids = cand_ids[np.isin(cand_obj, merged)]
+            in_k = (into == k)[cand_obj]  # the candidates of this object and of those merged into it
+            ids = cand_ids[in_k]
             entry = {"object_id": int(o["object_id"]), "obj_id": int(o["obj_id"]), "score": float(score[merged].max()),
                      "n_candidates": int(len(ids)), "cand_ids": [int(c) for c in ids],
                      "reprojection_error_px": round(float(err[k]), 4),
@@ -647,7 +648,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 # a view whose own candidates of this object all lie farther than explained_frac x
                 # the diameter from the refined object keeps them: the scene does not overrule what
                 # a view saw (a consistent mistake of the other views cannot replace a right pose)
-                mk = np.isin(cand_obj, merged)
+                mk = in_k
                 c_cam = T_cam_cand[mk, :3, 3]
                 o_cam = np.einsum("vij,j->vi", T_cam_world, T_world_obj[k][:, 3])[cv[mk], :3]
                 near = np.linalg.norm(c_cam - o_cam, axis=1) < conf["explained_frac"] * diam_of[int(o["obj_id"])]
