@@ -39,6 +39,9 @@ from .common import dataset_options, user_errors
 @click.option("--weak-links/--no-weak-links", default=None,
               help="Link views through 1-2 objects where RANSAC (>= min_inliers) cannot: two objects that agree, "
                    "or one object without symmetry, with no label contradicting [on].")
+@click.option("--max-rotation-deg", type=click.FloatRange(min=0, max=180, min_open=True), default=None,
+              help="A pair of candidates whose relative rotation is farther than this from its view pair's is no "
+                   "inlier, whatever its distance (objects without a continuous symmetry; 180: off) [90].")
 @click.option("--ransac-iterations", type=click.IntRange(min=1), default=None,
               help="Max hypotheses (pairs of candidate pairs) per view pair [paper: 2000].")
 @click.option("--ransac-confidence", type=click.FloatRange(min=0, max=1, min_open=True), default=None,
@@ -69,7 +72,7 @@ from .common import dataset_options, user_errors
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, views_per_group, known_cameras: bool,
-          threshold_mm, threshold_rel, adaptive_k, weak_links, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
+          threshold_mm, threshold_rel, adaptive_k, weak_links, max_rotation_deg, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
           label_groups, cross_label_hypotheses, hypotheses, hypothesis_penalty, overwrite: bool) -> None:
     """Match object candidates across views (CosyPose stage 2): RANSAC per view pair, scene graph.
 
@@ -80,7 +83,8 @@ def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, vie
 
     c = match_stage.resolve_conf(conf, views_per_group=views_per_group, known_cameras=known_cameras or None,
                                  threshold_mm=threshold_mm, threshold_rel=threshold_rel, adaptive_k=adaptive_k,
-                                 weak_links=weak_links, ransac_iterations=ransac_iterations,
+                                 weak_links=weak_links, max_rotation_deg=max_rotation_deg,
+                                 ransac_iterations=ransac_iterations,
                                  ransac_confidence=ransac_confidence,
                                  min_inliers=min_inliers, score_threshold=score_threshold,
                                  symmetry_steps=symmetry_steps, refit=refit, seed=seed, label_groups=label_groups,

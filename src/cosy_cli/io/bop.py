@@ -19,10 +19,12 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # pandas is imported where a function needs it: reading results needs only numpy
+    import pandas as pd
 
 from ..errors import CosyError
 from . import atomic
@@ -487,6 +489,8 @@ TARGET_COLUMNS = ["scene_id", "im_id", "obj_id", "inst_count"]
 
 def read_targets(path: str | Path) -> pd.DataFrame:
     """``test_targets_bop19.json``: a list of {scene_id, im_id, obj_id, inst_count}."""
+    import pandas as pd
+
     path = Path(path)
     data = load_json(path)
     if not isinstance(data, list):
@@ -515,37 +519,63 @@ def write_targets(path: str | Path, targets: pd.DataFrame) -> None:
 # --------------------------------------------------------------------------------------------
 # BOP results CSV (pose estimates)
 # --------------------------------------------------------------------------------------------
-@dataclass
+RESULT_INT_COLUMNS = ("scene_id", "im_id", "obj_id")
+
+
 class PoseResults:
     """Rows of a BOP results CSV: ids, score, time in ``table`` and poses in ``T_cam_obj``.
 
     ``table`` has columns scene_id, im_id, obj_id (int64), score, time (float64, seconds);
     ``T_cam_obj`` is (n, 4, 4) with translations in mm. Row i of both describe one estimate.
+    ``column(name)`` gives one column as a numpy array; the DataFrame ``table`` is made (and
+    pandas imported) only when asked for, so that the multi-view stages read and write results
+    without pandas.
     """
 
-    table: pd.DataFrame
-    T_cam_obj: np.ndarray
+    def __init__(self, table: "pd.DataFrame | None" = None, T_cam_obj: np.ndarray | None = None, *,
+                 columns: dict | None = None):
+        self._table = table
+        self._cols = None if table is not None else dict(columns or {})
+        self.T_cam_obj = np.zeros((0, 4, 4)) if T_cam_obj is None else T_cam_obj
+
+    @property
+    def table(self) -> "pd.DataFrame":
+        if self._table is None:
+            import pandas as pd
+
+            self._table = pd.DataFrame(self._cols)
+            self._cols = None  # the DataFrame is the data from now on (callers may change it)
+        return self._table
+
+    @table.setter
+    def table(self, value: "pd.DataFrame") -> None:
+        self._table, self._cols = value, None
+
+    def column(self, name: str) -> np.ndarray:
+        """One column (scene_id, im_id, obj_id, score or time) as a numpy array."""
+        if self._table is None:
+            return self._cols[name]
+        return self._table[name].to_numpy()
 
     def __len__(self) -> int:
-        return len(self.table)
+        return len(self.T_cam_obj) if self._table is None else len(self._table)
 
     @classmethod
     def empty(cls) -> "PoseResults":
-        return cls(pd.DataFrame({k: pd.Series(dtype=np.int64) for k in ("scene_id", "im_id", "obj_id")}
-                                | {"score": pd.Series(dtype=np.float64), "time": pd.Series(dtype=np.float64)}),
-                   np.zeros((0, 4, 4)))
+        return cls.from_arrays(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0),
+                               np.zeros((0, 4, 4)), np.zeros(0))
 
     @classmethod
     def from_arrays(cls, scene_id, im_id, obj_id, score, T_cam_obj, time=None) -> "PoseResults":
         n = len(np.atleast_1d(scene_id))
-        table = pd.DataFrame({
+        cols = {
             "scene_id": np.asarray(scene_id, dtype=np.int64).reshape(n),
             "im_id": np.asarray(im_id, dtype=np.int64).reshape(n),
             "obj_id": np.asarray(obj_id, dtype=np.int64).reshape(n),
             "score": np.asarray(score, dtype=np.float64).reshape(n),
             "time": (np.full(n, -1.0) if time is None else np.broadcast_to(np.asarray(time, dtype=np.float64), (n,)).copy()),
-        })
-        return cls(table, np.asarray(T_cam_obj, dtype=np.float64).reshape(n, 4, 4))
+        }
+        return cls(None, np.asarray(T_cam_obj, dtype=np.float64).reshape(n, 4, 4), columns=cols)
 
 
 def _check_complete_rows(path: Path, header: list[str]) -> None:
@@ -577,6 +607,15 @@ def read_results(path: str | Path, *, check_rotations: bool = True, rotations: s
     path = Path(path)
     if not path.is_file():
         raise CosyError("file not found", path=path)
+    fast = _parse_results_fast(path)
+    if fast is not None:  # a well-formed file: numpy alone (anything else: pandas, for its messages)
+        ids, score, time, R, t = fast
+        n = len(score)
+        if n == 0:
+            return PoseResults.empty()
+        return _results_from(path, ids, score, time, R.reshape(n, 3, 3), t, rotations)
+    import pandas as pd
+
     try:
         df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
     except pd.errors.EmptyDataError:
@@ -635,22 +674,73 @@ def read_results(path: str | Path, *, check_rotations: bool = True, rotations: s
 
     R = vectors("R", 9).reshape(n, 3, 3)
     t = vectors("t", 3)
+    return _results_from(path, [ints("scene_id"), ints("im_id"), ints("obj_id")], floats("score"), floats("time"),
+                         R, t, rotations)
+
+
+def _results_from(path: Path, ids, score, time, R, t, rotations: str) -> PoseResults:
+    """PoseResults of parsed columns, the rotations checked and repaired (:func:`repair_rotations`)."""
+    n = len(score)
     R, _ = repair_rotations(R, lambda i: f"row {i + 1}", path=path, what="R", rotations=rotations)
     T = np.zeros((n, 4, 4))
     T[:, :3, :3] = R
     T[:, :3, 3] = t
     T[:, 3, 3] = 1.0
-    return PoseResults.from_arrays(ints("scene_id"), ints("im_id"), ints("obj_id"), floats("score"), T, floats("time"))
+    return PoseResults.from_arrays(ids[0], ids[1], ids[2], score, T, time)
+
+
+def _parse_results_fast(path: Path):
+    """The columns of a well-formed results CSV (the header's columns in any order, no quotes, no
+    missing field, every number valid and finite, integer ids): ([scene_id, im_id, obj_id],
+    score, time, R (n, 9), t (n, 3)); None for anything else (the pandas reader then says what
+    is wrong, naming the row)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        return None
+    if '"' in text:
+        return None
+    lines = [x for x in text.splitlines() if x.strip()]
+    if not lines:
+        return None
+    header = [c.strip() for c in lines[0].split(",")]
+    need = [c for c in RESULTS_COLUMNS if c != "time"]
+    if len(set(header)) != len(header) or any(c not in header for c in need):
+        return None
+    rows = [x.split(",") for x in lines[1:]]
+    if any(len(r) != len(header) for r in rows):
+        return None
+    n = len(rows)
+    cols = dict(zip(header, zip(*rows))) if n else {c: () for c in header}
+    try:
+        def num(c):
+            return np.array([x.strip() for x in cols[c]], dtype=np.float64) if n else np.zeros(0)
+
+        ids = [num(c) for c in ("scene_id", "im_id", "obj_id")]
+        score = num("score")
+        time = num("time") if "time" in cols else np.full(n, -1.0)
+        vec = {}
+        for c, k in (("R", 9), ("t", 3)):
+            parts = [x.split() for x in cols[c]]
+            if any(len(q) != k for q in parts):
+                return None
+            vec[c] = np.array(parts, dtype=np.float64).reshape(n, k)
+    except ValueError:
+        return None
+    if not all(np.isfinite(a).all() for a in ids + [score, time, vec["R"], vec["t"]]):
+        return None
+    if any((a != np.round(a)).any() for a in ids):
+        return None
+    return [a.astype(np.int64) for a in ids], score, time, vec["R"], vec["t"]
 
 
 def format_results(res: PoseResults) -> str:
     """The CSV text of ``res`` (R row-major, t in mm, 6 decimals for t and 9 significant digits for R)."""
-    tab = res.table
     buf = _io.StringIO()
     buf.write(",".join(RESULTS_COLUMNS) + "\n")
     R = clean_rotations(res.T_cam_obj[:, :3, :3]).reshape(-1, 9).tolist()
     t = res.T_cam_obj[:, :3, 3].tolist()
-    cols = [tab[c].to_numpy().tolist() for c in ("scene_id", "im_id", "obj_id", "score", "time")]
+    cols = [res.column(c).tolist() for c in ("scene_id", "im_id", "obj_id", "score", "time")]
     for (scene_id, im_id, obj_id, score, time), Ri, ti in zip(zip(*cols), R, t):  # plain floats: fast
         buf.write(
             f"{int(scene_id)},{int(im_id)},{int(obj_id)},{float(score):.9g},"
@@ -676,6 +766,8 @@ def read_detections(path: str | Path) -> pd.DataFrame:
     Returns a table with columns scene_id, im_id, obj_id, score, x, y, w, h, time (and
     ``segmentation`` as objects when present).
     """
+    import pandas as pd
+
     path = Path(path)
     data = load_json(path)
     if not isinstance(data, list):

@@ -68,6 +68,7 @@ per group (the images read once per view). Lengths in mm; T 4x4 (OpenCV camera);
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -146,6 +147,29 @@ class CheckResult:
     s_kept: np.ndarray
 
 
+class LazyImages(Mapping):
+    """{im_id: image} for the views ``im_ids``, each read by ``read(im_id)`` when first asked
+    for (the reader caches: a view's image is read once per group)."""
+
+    def __init__(self, im_ids, read):
+        self._ids = [int(v) for v in im_ids]
+        self._read = read
+
+    def __getitem__(self, v):
+        if int(v) not in self._ids:
+            raise KeyError(v)
+        return self._read(int(v))
+
+    def __iter__(self):
+        return iter(self._ids)
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def __contains__(self, v) -> bool:
+        return int(v) in self._ids
+
+
 class ImageChecker(Closing):
     """Image check of refined poses (module docstring). db: ObjectDatabase of the labels to check;
     conf: ImageCheckConf. Renderers are made on first use; use as a context manager or close()."""
@@ -167,10 +191,23 @@ class ImageChecker(Closing):
         self.verifier.close()
         self.refiner.close()
 
-    def check(self, items: list[ViewItem], images: dict, Ks: dict) -> CheckResult:
-        """Check items of one group: images {im_id: (H, W, 3) uint8}, Ks {im_id: (3, 3)}. Views
+    def _competes(self, it: ViewItem) -> bool:
+        """Whether some candidate of the item disagrees with its refined pose by more than
+        ``min_gap`` x the diameter (only such a candidate may replace it)."""
+        if not len(it.T_cands):
+            return False
+        if self.conf.min_gap <= 0:
+            return True
+        pts = self._points[it.obj_id]
+        lim = self.conf.min_gap * self.db[int(it.obj_id)].diameter
+        return any(_max_displacement(pts, T, it.T_refined) > lim for T in np.asarray(it.T_cands).reshape(-1, 4, 4))
+
+    def check(self, items: list[ViewItem], images, Ks: dict) -> CheckResult:
+        """Check items of one group: images {im_id: (H, W, 3) uint8} (any mapping, e.g.
+        :class:`LazyImages`: only the views that need scoring are read), Ks {im_id: (3, 3)}. Views
         missing from ``images`` keep their refined poses. One verification render for all
-        hypotheses, one contour alignment per view."""
+        hypotheses, one contour alignment per view. Without the alignment, items that no
+        candidate competes with are not scored (the refined pose is kept whatever the scores)."""
         from ..singleview.contour import refine_contour
         from ..singleview.verify import observe
 
@@ -181,6 +218,11 @@ class ImageChecker(Closing):
         choice = ["refined"] * n
         s_ref, s_al, s_cd = np.full(n, -1.0), np.full(n, -1.0), np.full(n, -1.0)
         ok = [i for i, it in enumerate(items) if it.im_id in images]
+        if not c.align:
+            # without the alignment an item can only change when one of its candidates competes
+            # (disagrees with the refined pose by more than min_gap x the diameter): the others
+            # keep the refined pose whatever the scores, so they are not scored (-1)
+            ok = [i for i in ok if self._competes(items[i])]
         if not ok:
             return CheckResult(T_out, choice, s_ref, s_al, s_cd, s_ref.copy())
         obj = np.array([items[i].obj_id for i in ok])

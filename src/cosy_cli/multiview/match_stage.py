@@ -100,6 +100,9 @@ CONFS: dict[str, dict] = {
         "threshold_rel": 0.10,
         "adaptive_k": 3.0,
         "weak_links": True,
+        # a pair of candidates whose relative rotation disagrees with its view pair's by more than
+        # this (deg; objects without a continuous symmetry) is no inlier whatever its distance (180: off)
+        "max_rotation_deg": 90.0,
         # beyond the paper (issue 19): candidates of look-alike labels may be associated, the object
         # takes the label with most evidence ("auto": look-alike models; "none": same label only;
         # or groups like "6:7,5:8"; see cosy_cli.multiview.label_groups)
@@ -117,8 +120,9 @@ CONFS: dict[str, dict] = {
 }
 # As published: one candidate pair's hypothesis (no refit), the fixed 2 cm, >= 3 inliers, same label
 CONFS["paper-norefit"] = {**CONFS["paper"], "refit": False, "threshold_rel": 0.0, "adaptive_k": 0.0,
-                          "weak_links": False, "label_groups": "none"}
-CONFS["paper-fixed"] = {**CONFS["paper"], "threshold_rel": 0.0, "adaptive_k": 0.0, "weak_links": False}
+                          "weak_links": False, "label_groups": "none", "max_rotation_deg": 180.0}
+CONFS["paper-fixed"] = {**CONFS["paper"], "threshold_rel": 0.0, "adaptive_k": 0.0, "weak_links": False,
+                        "max_rotation_deg": 180.0}
 
 
 def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
@@ -130,6 +134,7 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
         "views_per_group": lambda v: v is None or v >= 2, "ransac_confidence": lambda v: 0 < v <= 1,
         "threshold_rel": lambda v: 0 <= v < 10, "adaptive_k": lambda v: 0 <= v < 1000,
         "hypotheses": lambda v: int(v) == v and 1 <= v <= 64, "hypothesis_penalty": lambda v: 0 <= v < 100,
+        "max_rotation_deg": lambda v: 0 < v <= 180,
     }
     for k, ok in checks.items():
         try:
@@ -146,6 +151,7 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     base["threshold_rel"] = float(base["threshold_rel"])
     base["adaptive_k"] = float(base["adaptive_k"])
     base["hypothesis_penalty"] = float(base["hypothesis_penalty"])
+    base["max_rotation_deg"] = float(base["max_rotation_deg"])
     base["weak_links"] = as_bool(base["weak_links"], "weak_links", "match")
     base["score_threshold"] = float(base["score_threshold"])
     base["refit"] = as_bool(base["refit"], "refit", "match")
@@ -288,16 +294,16 @@ def make_groups(ds: BopDataset, scene_ids, views_per_group: int | None) -> list[
 
 
 def _check_inputs(ds: BopDataset, cands: bop.PoseResults, csv_path: Path, known_cameras: bool) -> None:
-    tab = cands.table
+    tab = cands
     infos = ds.models_info()
-    obj = tab["obj_id"].to_numpy()
+    obj = tab.column("obj_id")
     bad = np.flatnonzero(~np.isin(obj, np.array(sorted(infos), dtype=np.int64)))
     if len(bad):
         i = int(bad[0])
         raise CosyError(f"obj_id {obj[i]} is not in the dataset's models ({ds.models_info_path} has "
                         f"{', '.join(map(str, sorted(infos)))})", path=csv_path, where=_row(i))
-    scenes = tab["scene_id"].to_numpy()
-    ims = tab["im_id"].to_numpy()
+    scenes = tab.column("scene_id")
+    ims = tab.column("im_id")
     known_scenes = set(ds.scene_ids)
     order = np.argsort(scenes, kind="stable")
     uniq, starts = np.unique(scenes[order], return_index=True)
@@ -401,12 +407,12 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     group also has ``hyp_rank`` (rank chosen per candidate) and ``T_chosen`` (their poses)."""
     from threadpoolctl import threadpool_limits
 
-    tab = cands.table
+    tab = cands
     n = len(tab)
-    scenes = tab["scene_id"].to_numpy()
-    ims = tab["im_id"].to_numpy()
-    objs = tab["obj_id"].to_numpy()
-    score = tab["score"].to_numpy()
+    scenes = tab.column("scene_id")
+    ims = tab.column("im_id")
+    objs = tab.column("obj_id")
+    score = tab.column("score")
     object_id = np.full(n, -1, dtype=np.int64)
     group_of = np.full(n, -1, dtype=np.int64)
     groups = make_groups(ds, sorted(int(s) for s in np.unique(scenes)), conf["views_per_group"])
@@ -417,6 +423,7 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
                          min_inliers=conf["min_inliers"], refit=conf["refit"], sym_candidates=conf["sym_candidates"],
                          ransac_confidence=conf["ransac_confidence"], threshold_rel=conf["threshold_rel"],
                          adaptive_k=conf["adaptive_k"], weak_links=conf["weak_links"],
+                         max_rotation_deg=conf["max_rotation_deg"],
                          cross_label_hypotheses=conf["cross_label_hypotheses"])
     lab_all = table.index_of(objs) if used else np.zeros(0, dtype=np.int64)
     diameters = {o: float(ds.models_info()[o].diameter) for o in used} if resolved.pairs else {}
@@ -521,22 +528,22 @@ def chosen_hypotheses(cands: bop.PoseResults, groups) -> tuple[bop.PoseResults, 
         if "hyp_rank" in g:
             rank[g["cand_idx"]] = g["hyp_rank"]
             T[g["cand_idx"]] = g["T_chosen"]
-    tab = cands.table
-    out = bop.PoseResults.from_arrays(tab["scene_id"], tab["im_id"], tab["obj_id"], tab["score"], T, tab["time"])
+    tab = cands
+    out = bop.PoseResults.from_arrays(tab.column("scene_id"), tab.column("im_id"), tab.column("obj_id"), tab.column("score"), T, tab.column("time"))
     return out, rank
 
 
 def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands: bop.PoseResults, groups,
                    object_id, group_of, summary: dict, resolved: "label_groups.Resolved | None" = None,
                    hyp_file: Path | None = None) -> None:
-    tab = cands.table
-    ims = tab["im_id"].to_numpy()
+    tab = cands
+    ims = tab.column("im_id")
     with_hyp = conf.get("hypotheses", 1) > 1
     if with_hyp:  # candidates.csv carries the chosen poses (cosy refine reads it)
         cands, hyp_rank = chosen_hypotheses(cands, groups)
     lines = ["scene_id,group_id,im_id,obj_id,score,cand_id,object_id,object_obj_id"
              + (",hyp_rank" if with_hyp else "")]
-    sc, ob, scr = tab["scene_id"].to_numpy(), tab["obj_id"].to_numpy(), tab["score"].to_numpy()
+    sc, ob, scr = tab.column("scene_id"), tab.column("obj_id"), tab.column("score")
     gid = [groups[g]["group_id"] if g >= 0 else -1 for g in group_of]
     obj_label = ob.copy()  # the label of each candidate's object (its own when discarded)
     for g in groups:

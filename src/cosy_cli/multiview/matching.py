@@ -181,6 +181,9 @@ class MatchParams:
     # same-label pairs as in the paper, pairs of grouped labels only add associations under them;
     # True = pairs of grouped labels also make and score hypotheses
     cross_label_hypotheses: bool = False
+    # final associations: a pair of candidates whose relative rotation disagrees with the view
+    # pair's by more than this is no inlier (objects without a continuous symmetry; 180: off)
+    max_rotation_deg: float = 180.0
 
 
 class LabelTable:
@@ -981,9 +984,32 @@ class _Group:
         best[v], best_cnt[v], best_res[v] = hs, cnt, res
 
     def associate_with(self, vps, T_ab):
-        """One-to-one inlier associations of one hypothesis per view pair (vps (k,), T_ab (k, 4, 4))."""
-        _, rp, D, s = self.rows_of(vps, T_ab)
-        return self.associate(rp, D, s)
+        """One-to-one inlier associations of one hypothesis per view pair (vps (k,), T_ab (k, 4, 4)).
+
+        With ``max_rotation_deg`` < 180, a pair of candidates of an object without a continuous
+        symmetry whose relative rotation (under the symmetry D_l chose) is farther than that from
+        the hypothesis' is no inlier, whatever D_l: one of the two has its rotation wrong (a
+        loose threshold at 1 m admits a 160 deg error of a small object)."""
+        rh, rp, D, s = self.rows_of(vps, T_ab)
+        return self.associate(rp, self.rotation_gate(rp, D, s, T_ab[rh]), s)
+
+    def rotation_gate(self, rp, D, s, T_rows):
+        """D (rows rp with symmetry index s) with inf where the pair's relative rotation is farther
+        than ``max_rotation_deg`` from that of ``T_rows`` (the hypothesis of each row's view pair;
+        objects without a continuous symmetry, rows under their threshold only)."""
+        lim = float(self.params.max_rotation_deg)
+        if lim >= 180.0 or not len(rp):
+            return D
+        cand = np.flatnonzero((D < self.thr_vp[self.pvp[rp]]) & ~self.table.continuous[self.plab[rp]])
+        if not len(cand):
+            return D
+        r = rp[cand]
+        Ri = np.matmul(self.T[self.pI[r], :3, :3], self.table.S[self.plab[r], s[cand], :3, :3])
+        Rk = np.matmul(Ri, np.swapaxes(self.pTJ[r, :3, :3], -1, -2))
+        ang = _rot_angle(np.matmul(np.swapaxes(T_rows[cand, :3, :3], -1, -2), Rk))
+        D = D.copy()
+        D[cand[ang > np.deg2rad(lim)]] = np.inf
+        return D
 
     def associate(self, rp, D, s):
         """One-to-one inlier associations from rows (pair rp, D_l, symmetry index) of one
@@ -1236,8 +1262,8 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
         vps = np.flatnonzero(g.m > 0)
         assoc = g.associate_with(vps, T_ab[vps])
     else:
-        T_ab, best_cnt, n_hyp, best_rows = g.ransac(seeds)
-        assoc = g.associate(*best_rows)
+        T_ab, best_cnt, n_hyp, (b_rp, b_D, b_s) = g.ransac(seeds)
+        assoc = g.associate(b_rp, g.rotation_gate(b_rp, b_D, b_s, T_ab[g.pvp[b_rp]]), b_s)
     n_vp = np.bincount(assoc[4], minlength=g.nvp)
     if params.refit and not known:
         assoc, n_vp = _refit_pairs(g, T_ab, assoc, n_vp)

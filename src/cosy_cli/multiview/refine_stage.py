@@ -489,7 +489,7 @@ def single_view_group(g: dict, cands: bop.PoseResults, T_world_cam: np.ndarray, 
     identity: the view is the world frame, or the dataset's pose with known cameras). Same
     entry as :func:`refine_group`, with ``"single_view": true`` and a ``note``."""
     s, v = int(g["scene_id"]), int(g["im_ids"][0])
-    c_score = cands.table["score"].to_numpy()
+    c_score = cands.column("score")
     objects_out, pred, unused = [], [], [int(c) for c in g["discarded"]]
     for o in g["objects"]:
         ids = [int(c) for c in o["cand_ids"]]
@@ -546,7 +546,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         unplaced: list[int] = []
         gauge = None
     else:
-        c_obj = cands.table["obj_id"].to_numpy()
+        c_obj = cands.column("obj_id")
         links = [placement.Link(int(p["im_id_a"]), int(p["im_id_b"]), np.asarray(p["T_cam_a_cam_b"], dtype=np.float64),
                                 int(p["n_inliers"]), p.get("link", "ransac"),
                                 [int(c_obj[int(e[0])]) for e in p.get("associations", [])])
@@ -562,11 +562,12 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     from .image_check import images_available
 
     use_features = wanted and len(views) > 1 and images_available(ds, s, views)
+    pending: list = []  # feature cameras for the leftover check, computed only if it needs them
     rgb = functools.cache(lambda v: ds.read_rgb(s, v))  # the group's images, each read once
     features = functools.cache(lambda: _feature_cache(conf))  # SIFT per image, computed once (made when needed)
-    tab = cands.table
-    c_im = tab["im_id"].to_numpy()
-    c_score = tab["score"].to_numpy()
+    tab = cands
+    c_im = tab.column("im_id")
+    c_score = tab.column("score")
 
     # candidates of objects, in placed views
     cand_ids, cand_obj, objs = [], [], []
@@ -605,8 +606,15 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         if use_features and gauge in vidx and len(views) > 1:
             # the cameras' rotations and baseline directions from the images (multiview.features),
             # the scale from the objects; then the objects again with those cameras held
-            res = _feature_cameras(res, rgb, features(), views, vidx, gauge, cams, cv, cand_obj, T_cam_cand, K,
-                                   obj_label, geo, c_score[cand_ids], conf, stats, placed_by)
+            # ("scene"); for the leftover check alone ("leftovers") only when it needs them
+            # (see _check_leftovers), the objects' cameras as they are now
+            run_features = functools.partial(
+                _feature_cameras, res, rgb, features(), list(views), dict(vidx), gauge, cams, cv, cand_obj,
+                T_cam_cand, K, obj_label, geo, c_score[cand_ids], conf, stats, placed_by)
+            if conf["feature_cameras"] == "leftovers":
+                pending.append(run_features)
+            else:
+                res = run_features()
         Twc, T_world_obj = res.T_world_cam, res.T_world_obj
         n_c = np.bincount(cand_obj, minlength=len(objs))
         score = np.full(len(objs), -np.inf)
@@ -679,7 +687,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
             vi = {v: k for k, v in enumerate(views)}
             left = np.array([c for c in g["discarded"] if int(c_im[int(c)]) in vi], dtype=np.int64)
             if len(left) > 1:
-                c_obj_all = tab["obj_id"].to_numpy()
+                c_obj_all = tab.column("obj_id")
                 l_labels = sorted({int(c_obj_all[c]) for c in left})
                 l_geo = [geometry[o] for o in l_labels]
                 l_index = {o: k for k, o in enumerate(l_labels)}
@@ -710,8 +718,9 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     if (wanted and conf["feature_cameras"] == "leftovers" and gauge in placed and never
             and images_available(ds, s, [gauge] + never)):
         # views the objects could not place at all: cameras from the images alone, for the leftovers
-        _unplaced_feature_cameras(rgb, features(), gauge, placed[gauge], never, cams, cands, all_cands, stats)
-    feature_cams = stats.pop("_feature_T_world_cam", {})  # the leftovers' cameras ("leftovers" mode)
+        pending.append(functools.partial(_unplaced_feature_cameras, rgb, features(), gauge, placed[gauge], never,
+                                         cams, cands, all_cands, stats))
+    feature_cams = stats.pop("_feature_T_world_cam", {})  # the leftovers' cameras (none yet: see pending)
     dt = time.perf_counter() - t0
     stats["time_s"] = round(dt, 6)
     # predictions: every kept object in every placed camera
@@ -743,7 +752,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
            if any(v not in views for v in feature_cams) else {}),
         "objects": objects_out, "stats": stats,
         "_pred": pred, "_unused": sorted(set(unused)), "_time": dt, "_feature_cams": feature_cams,
-        "_all_cands": all_cands, "_rgb": rgb,
+        "_all_cands": all_cands, "_rgb": rgb, "_features_pending": pending,
     }
 
 
@@ -755,13 +764,13 @@ def _image_check(checker, rgb, pred: list, pred_obj: list, objects_out: list, ca
     from . import image_check as ic
 
     t0 = time.perf_counter()
-    c_im = cands.table["im_id"].to_numpy()
+    c_im = cands.column("im_id")
     items = []
     for (_, v, o, _, T), j in zip(pred, pred_obj):
         ids = [int(c) for c in objects_out[j]["cand_ids"] if int(c_im[int(c)]) == int(v)]
         items.append(ic.ViewItem(int(v), int(o), T, cands.T_cam_obj[ids] if ids else np.zeros((0, 4, 4))))
     views = sorted({int(x[1]) for x in pred})
-    res = checker.check(items, {v: rgb(v) for v in views}, {v: cams[v].K for v in views})
+    res = checker.check(items, ic.LazyImages(views, rgb), {v: cams[v].K for v in views})
     out = []
     counts = dict.fromkeys(ic.CHOICES, 0)
     for q, ((sc_id, v, o, sc, _), j) in enumerate(zip(pred, pred_obj)):
@@ -837,8 +846,8 @@ def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray,
     from . import features as ft
 
     t0 = time.perf_counter()
-    tab = cands.table
-    c_im, c_obj = tab["im_id"].to_numpy(), tab["obj_id"].to_numpy()
+    tab = cands
+    c_im, c_obj = tab.column("im_id"), tab.column("obj_id")
     ids = np.array(all_cands, dtype=np.int64)
 
     def once(v):  # label -> the candidate of a label seen once in view v
@@ -890,11 +899,11 @@ def fallback_candidates(r: dict, cands: bop.PoseResults, diameters: dict, conf: 
                         score_min: float = -np.inf) -> list:
     """The group's candidates that no refined prediction of their label in their image explains
     (centres closer than ``explained_frac`` x the diameter), as (cand_id, im_id, obj_id, score)."""
-    tab = cands.table
+    tab = cands
     ids = np.array(sorted(r["_all_cands"]), dtype=np.int64)
     if not len(ids):
         return []
-    ims, objs, scores = tab["im_id"].to_numpy()[ids], tab["obj_id"].to_numpy()[ids], tab["score"].to_numpy()[ids]
+    ims, objs, scores = tab.column("im_id")[ids], tab.column("obj_id")[ids], tab.column("score")[ids]
     keep = scores >= score_min
     near: dict = {}
     for (_, v, o, _, T) in r["_pred"]:
@@ -925,7 +934,23 @@ def _check_leftovers(checker, ds: BopDataset, r: dict, cands: bop.PoseResults, d
     # from one viewpoint the single-view pick (depth fit + image) is the stronger judge (on the YCB-V
     # frames the check cost 0.03 AR with the image score, 0.06 with depth + image); from several, the
     # views' images settle what one view's depth cannot (a proxy RGB-D LM-O, see the README).
-    # Cameras: those from image features where refine found them (feature_cameras "leftovers").
+    # Cameras: those from image features where refine finds them (feature_cameras "leftovers"),
+    # computed here, and only when the check can use them: some label has leftovers in two views
+    # (a leftover alone in its label cannot take another view's pose, whatever the cameras)
+    pending = r.pop("_features_pending", None) or []
+    if pending:
+        fb_all = fallback_candidates(r, cands, diameters, conf, score_min)
+        views_of: dict = {}
+        for _, v, o, _ in fb_all:
+            views_of.setdefault(o, set()).add(v)
+        if any(len(vs) > 1 for vs in views_of.values()):
+            t_f = time.perf_counter()
+            for f in pending:
+                f()
+            _record_feature_cameras(r, r["stats"].pop("_feature_T_world_cam", {}))
+            r["_time"] += time.perf_counter() - t_f
+        else:
+            r["stats"]["feature_cameras"] = {"views": {}, "skipped": FEATURES_SKIPPED}
     lc = r.get("_feature_cams") or {}
     placed = {int(c["im_id"]): np.asarray(lc.get(int(c["im_id"]), c["T_world_cam"]), dtype=np.float64)
               for c in r["cameras"]}
@@ -948,6 +973,23 @@ def _check_leftovers(checker, ds: BopDataset, r: dict, cands: bop.PoseResults, d
                                     "pose_of_cand_id": int(fb[res.source[k]][0])} for k in changed]}
     r["stats"]["image_check_leftovers"] = {"clusters": len(res.cluster_scores), "replaced": int(len(changed)),
                                            "time_s": round(time.perf_counter() - t0, 6)}
+
+
+FEATURES_SKIPPED = "no label has leftover candidates in two views: image features could not change the leftover check"
+
+
+def _record_feature_cameras(r: dict, feature_cams: dict) -> None:
+    """scene.json's record of the cameras from image features found for the leftover check: per
+    camera ``T_world_cam_features``, and ``feature_only_cameras`` for views only they placed."""
+    r["_feature_cams"] = feature_cams
+    placed = set()
+    for cam in r["cameras"]:
+        placed.add(int(cam["im_id"]))
+        if int(cam["im_id"]) in feature_cams:
+            cam["T_world_cam_features"] = _mat(feature_cams[int(cam["im_id"])])
+    extra = [v for v in sorted(feature_cams) if int(v) not in placed]
+    if extra:
+        r["feature_only_cameras"] = [{"im_id": int(v), "T_world_cam_features": _mat(feature_cams[v])} for v in extra]
 
 
 def _count_placed_by(results: list) -> dict:
@@ -1021,7 +1063,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     bad = [o for o in used if o not in infos]
     if bad:
         raise CosyError(f"object {bad[0]} of {gpath} is not in the dataset's models", path=ds.models_info_path)
-    c_obj = cands.table["obj_id"].to_numpy()
+    c_obj = cands.column("obj_id")
     used = sorted({int(o["obj_id"]) for g in doc["groups"] if len(g["im_ids"]) > 1 for o in g["objects"]}
                   | {int(c_obj[int(c)]) for g in doc["groups"] if len(g["im_ids"]) > 1 for c in g["discarded"]})
     geometry = {o: label_geometry(ds, o, conf["n_points"], conf["symmetry_steps"]) for o in used}
@@ -1042,7 +1084,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
 
             labels = set(used)
             if conf["image_check_leftovers"]:  # leftover candidates may carry labels no object has
-                labels |= {int(o) for o in np.unique(cands.table["obj_id"].to_numpy())} & set(infos)
+                labels |= {int(o) for o in np.unique(cands.column("obj_id"))} & set(infos)
             db = ObjectDatabase.from_models_dir(ds.models_dir, obj_ids=labels)
             checker = ic.ImageChecker(db, ic.ImageCheckConf(align=conf["image_check_align"],
                                                             margin=conf["image_check_margin"],
