@@ -585,7 +585,7 @@ def test_a_candidate_turned_by_more_than_max_rotation_is_no_inlier(tables, tmp_p
                                 np.zeros(3))
     bad = tmp_path / "turned.csv"
     bad.write_text(bop.format_results(bop.PoseResults(tab, T)))
-    _match(tables, bad, tmp_path / "on", threshold_mm=500.0, threshold_rel=0.0, adaptive_k=0.0)
+    _match(tables, bad, tmp_path / "on", threshold_mm=500.0, threshold_rel=0.0, adaptive_k=0.0, max_rotation_deg=90.0)
     _match(tables, bad, tmp_path / "off", threshold_mm=500.0, threshold_rel=0.0, adaptive_k=0.0,
            max_rotation_deg=180.0)
     inst = side.set_index("cand_id").loc[np.arange(len(tab)), "instance_id"].to_numpy()

@@ -41,7 +41,7 @@ from .common import dataset_options, user_errors
                    "or one object without symmetry, with no label contradicting [on].")
 @click.option("--max-rotation-deg", type=click.FloatRange(min=0, max=180, min_open=True), default=None,
               help="A pair of candidates whose relative rotation is farther than this from its view pair's is no "
-                   "inlier, whatever its distance (objects without a continuous symmetry; 180: off) [90].")
+                   "inlier, whatever its distance (objects without a continuous symmetry) [180: off].")
 @click.option("--ransac-iterations", type=click.IntRange(min=1), default=None,
               help="Max hypotheses (pairs of candidate pairs) per view pair [paper: 2000].")
 @click.option("--ransac-confidence", type=click.FloatRange(min=0, max=1, min_open=True), default=None,

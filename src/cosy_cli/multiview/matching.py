@@ -83,8 +83,10 @@ Additions to the paper (documented choices)
   in one weighted Wahba problem, the axes of the associations' relative rotations (objects
   without a continuous symmetry, under the symmetry each association chose), the symmetry axes
   of the others, and the layout of the object centres, weighted by the rotation spread the pair
-  shows and by the centres' noise (the group's estimated noise once known); the translation
-  from the centres. The associations are then recomputed under the fit and the fit repeated
+  shows and by the centres' noise (the group's estimated noise once known); an association whose
+  rotation is more than ``ROT_OUTLIER_DEG`` (45) from the pair's current pose or the mean of the
+  relative rotations (whichever more agree with) gives only its centres; the translation from
+  the centres. The associations are then recomputed under the fit and the fit repeated
   until they do not change, so an association that disagrees with the fit beyond the view
   pair's threshold (which follows the group's noise) is not an inlier, and a pair left with
   fewer than ``min_inliers`` is not a RANSAC link. ``GroupResult.fit_residual_mm``: the RMS of
@@ -181,8 +183,8 @@ class MatchParams:
     # same-label pairs as in the paper, pairs of grouped labels only add associations under them;
     # True = pairs of grouped labels also make and score hypotheses
     cross_label_hypotheses: bool = False
-    # final associations: a pair of candidates whose relative rotation disagrees with the view
-    # pair's by more than this is no inlier (objects without a continuous symmetry; 180: off)
+    # associations: a pair of candidates whose relative rotation disagrees with the view pair's by
+    # more than this is no inlier (objects without a continuous symmetry; 180: off, the default)
     max_rotation_deg: float = 180.0
 
 
@@ -478,7 +480,7 @@ def _refit_pairs(g: "_Group", T_ab: np.ndarray, assoc: tuple, n_vp: np.ndarray) 
     are those of the fit; repeated until they no longer change (at most ``FIT_ROUNDS``), so that
     each pose is the fit of its final inliers. Returns the associations and counts after it."""
     for _ in range(FIT_ROUNDS):
-        vps, T_fit = g.fit(assoc, n_vp, g.sigma_t, min_n=g.params.min_inliers)
+        vps, T_fit = g.fit(assoc, n_vp, g.sigma_t, min_n=g.params.min_inliers, T_ref=T_ab)
         if not len(vps):
             break
         a2 = g.associate_with(vps, T_fit)
@@ -1030,7 +1032,7 @@ class _Group:
         fj = np.sort(fj)
         return i[fj], j[fj], d[fj], ss[fj], vp[fj], pr[fj]
 
-    def fit(self, assoc, n_vp, sigma_t: np.ndarray, min_n: int = 1):
+    def fit(self, assoc, n_vp, sigma_t: np.ndarray, min_n: int = 1, T_ref: np.ndarray | None = None):
         """Least-squares T_ab per view pair from its associations (symmetry-aware, all of them).
 
         Rotation: the weighted Wahba problem over the directions the candidates agree on: the
@@ -1040,7 +1042,9 @@ class _Group:
         else ``SIGMA_R_DEFAULT``), and the layout of the object centres, ``sum (c_a - mean)(c_b -
         mean)^T / sigma_t^2`` (sigma_t (nvp,) mm: the noise of the centres). Translation: the mean
         of ``c_a - R c_b``. Returns (view pairs fitted (k,), T_ab (k, 4, 4)); a pair whose
-        directions do not fix the rotation is not fitted.
+        directions do not fix the rotation is not fitted. ``T_ref`` (nvp, 4, 4): the pairs' current
+        poses; an association whose rotation (or axis) is more than ``ROT_OUTLIER_DEG`` from it
+        gives no direction (one of its candidates has the rotation wrong), only its centres.
         """
         i, j, d, ss, vp, pr = assoc
         ok = n_vp[vp] >= max(1, int(min_n))
@@ -1056,8 +1060,31 @@ class _Group:
         cnt = np.diff(np.r_[starts, len(vp)])
         seg = np.repeat(np.arange(len(vps)), cnt)
         Ra, Rb = TS[:, :3, :3], Tj[:, :3, :3]
-        full = ~tab.continuous[l]
         Rk = np.matmul(Ra, np.swapaxes(Rb, -1, -2))
+        ax = tab.continuous[l] & tab.has_axis[l]
+        a = tab.axis_dir[l]
+        ua = np.einsum("eij,ej->ei", Ra, a)
+        ub = np.einsum("eij,ej->ei", Rb, a)
+        full = ~tab.continuous[l]
+        if T_ref is not None:
+            # rotation outliers give their centres only: far from the reference, the current pose
+            # or the chordal mean of the relative rotations, whichever more of them agree with
+            lim = np.deg2rad(ROT_OUTLIER_DEG)
+            R_mean = _project_so3(np.add.reduceat(Rk * full[:, None, None], starts) + 1e-9 * np.eye(3))
+            best_ok, best_n = None, None
+            for Rr in (T_ref[vps, :3, :3], R_mean):
+                Re = Rr[seg]
+                ok_r = full & (_rot_angle(np.matmul(np.swapaxes(Re, -1, -2), Rk)) <= lim)
+                ok_a = ax & (np.einsum("ei,ei->e", ua, np.einsum("eij,ej->ei", Re, ub)) >= np.cos(lim))
+                n_ok = np.add.reduceat((ok_r | ok_a).astype(np.int64), starts)
+                if best_ok is None:
+                    best_ok, best_n = (ok_r, ok_a), n_ok
+                    continue
+                take = (n_ok > best_n)[seg]
+                best_ok = (np.where(take, ok_r, best_ok[0]), np.where(take, ok_a, best_ok[1]))
+                best_n = np.maximum(n_ok, best_n)
+            full, ax = best_ok
+        ua = ua * ax[:, None]
         Rfull = Rk * full[:, None, None]
         Bfull = np.add.reduceat(Rfull, starts)
         n_full = np.add.reduceat(full.astype(np.int64), starts)
@@ -1071,10 +1098,6 @@ class _Group:
             ang = _rot_angle(np.matmul(np.swapaxes(R0[pos[seg[e]]], -1, -2), Rk[e]))
             spread = _median_by(ang, seg[e], len(vps)) / 1.5
             sig_r[spread_from] = np.clip(spread[spread_from], SIGMA_R_MIN, SIGMA_R_MAX)
-        ax = tab.continuous[l] & tab.has_axis[l]
-        a = tab.axis_dir[l]
-        ua = np.einsum("eij,ej->ei", Ra, a) * ax[:, None]
-        ub = np.einsum("eij,ej->ei", Rb, a)
         B = (Bfull + np.add.reduceat(ua[:, :, None] * ub[:, None, :], starts)) / (sig_r ** 2)[:, None, None]
         c = tab.centers[l]
         ca = np.einsum("eij,ej->ei", Ra, c) + TS[:, :3, 3]
@@ -1161,6 +1184,7 @@ class _Group:
 
 SIGMA_R_DEFAULT = np.deg2rad(3.0)  # rad: relative rotation noise assumed when fewer than 3 objects show it
 SIGMA_R_MIN, SIGMA_R_MAX = np.deg2rad(0.2), np.deg2rad(30.0)
+ROT_OUTLIER_DEG = 45.0  # an association this far in rotation from its pair's pose gives the fit no direction
 
 
 def _rot_angle(R: np.ndarray) -> np.ndarray:
