@@ -362,3 +362,44 @@ def test_refine_records_an_image_pair_opencv_refuses_and_goes_on(tmp_path, monke
     none = json.loads((tmp_path / "none" / "scene.json").read_text())
     for ga, gb in zip(doc["groups"], none["groups"]):
         assert [o["T_world_obj"] for o in ga["objects"]] == [o["T_world_obj"] for o in gb["objects"]]
+
+
+def test_refine_skips_image_work_that_cannot_change_its_output(tmp_path, monkeypatch):
+    """Exact candidates of one demo scene: every candidate is explained by the refined scene and
+    none disagrees with it, so neither the image features (for the leftover check) nor the image
+    check's verification renders can change the output: they are not computed (SIFT and the
+    verifier would raise here), scene.json says why, and the predictions are those without the
+    image check."""
+    import cv2
+
+    from cosy_cli.io import bop
+    from cosy_cli.multiview import match_stage, refine_stage
+    from cosy_cli.singleview import verify
+    from cosy_cli.synth import candidates as synth_candidates
+
+    data = Path(__file__).resolve().parents[1] / "data_samples"
+    quiet = lambda *a, **k: None  # noqa: E731
+    synth_candidates.main(data, "test", tmp_path / "all.csv", profile="clean", seed=0, log=quiet)
+    res = bop.read_results(tmp_path / "all.csv", check_rotations=False)
+    keep = res.column("scene_id") == res.column("scene_id").min()
+    (tmp_path / "c.csv").write_text(bop.format_results(bop.PoseResults.from_arrays(
+        res.column("scene_id")[keep], res.column("im_id")[keep], res.column("obj_id")[keep],
+        res.column("score")[keep], res.T_cam_obj[keep], res.column("time")[keep])))
+    match_stage.main(match_stage.resolve_conf("paper"), data, "test", tmp_path / "c.csv", tmp_path / "m", log=quiet,
+                     progress=False)
+    refine_stage.main(refine_stage.resolve_conf(None, image_check="none"), data, "test", tmp_path / "m",
+                      tmp_path / "none", log=quiet, progress=False)
+
+    def never(*args, **kwargs):
+        raise AssertionError("computed, though it cannot change the output")
+
+    monkeypatch.setattr(cv2, "SIFT_create", never)
+    monkeypatch.setattr(verify.Verifier, "score", never)
+    summary = refine_stage.main(None, data, "test", tmp_path / "m", tmp_path / "r", log=quiet, progress=False)
+    doc = json.loads((tmp_path / "r" / "scene.json").read_text())
+    (g,) = doc["groups"]
+    assert g["stats"]["feature_cameras"] == {"views": {}, "skipped": refine_stage.FEATURES_SKIPPED}
+    assert summary["image_check"]["refined"] > 0 and summary["image_check"]["candidate"] == 0
+    a, b = (tmp_path / "r" / "predictions.csv").read_text(), (tmp_path / "none" / "predictions.csv").read_text()
+    strip = lambda t: [line.rsplit(",", 1)[0] for line in t.splitlines()]  # noqa: E731  (the time column differs)
+    assert strip(a) == strip(b)

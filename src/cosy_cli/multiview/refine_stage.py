@@ -608,9 +608,9 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
             # the scale from the objects; then the objects again with those cameras held
             # ("scene"); for the leftover check alone ("leftovers") only when it needs them
             # (see _check_leftovers), the objects' cameras as they are now
-            run_features = functools.partial(
-                _feature_cameras, res, rgb, features(), list(views), dict(vidx), gauge, cams, cv, cand_obj,
-                T_cam_cand, K, obj_label, geo, c_score[cand_ids], conf, stats, placed_by)
+            args = (res, rgb, list(views), dict(vidx), gauge, cams, cv, cand_obj, T_cam_cand, K, obj_label, geo,
+                    c_score[cand_ids], conf, stats, placed_by)
+            run_features = functools.partial(lambda a: _feature_cameras(a[0], a[1], features(), *a[2:]), args)
             if conf["feature_cameras"] == "leftovers":
                 pending.append(run_features)
             else:
@@ -718,8 +718,8 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     if (wanted and conf["feature_cameras"] == "leftovers" and gauge in placed and never
             and images_available(ds, s, [gauge] + never)):
         # views the objects could not place at all: cameras from the images alone, for the leftovers
-        pending.append(functools.partial(_unplaced_feature_cameras, rgb, features(), gauge, placed[gauge], never,
-                                         cams, cands, all_cands, stats))
+        args = (rgb, gauge, placed[gauge], never, cams, cands, all_cands, stats)
+        pending.append(functools.partial(lambda a: _unplaced_feature_cameras(a[0], features(), *a[1:]), args))
     feature_cams = stats.pop("_feature_T_world_cam", {})  # the leftovers' cameras (none yet: see pending)
     dt = time.perf_counter() - t0
     stats["time_s"] = round(dt, 6)
