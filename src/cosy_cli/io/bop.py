@@ -519,9 +519,6 @@ def write_targets(path: str | Path, targets: pd.DataFrame) -> None:
 # --------------------------------------------------------------------------------------------
 # BOP results CSV (pose estimates)
 # --------------------------------------------------------------------------------------------
-RESULT_INT_COLUMNS = ("scene_id", "im_id", "obj_id")
-
-
 class PoseResults:
     """Rows of a BOP results CSV: ids, score, time in ``table`` and poses in ``T_cam_obj``.
 

@@ -191,16 +191,16 @@ class ImageChecker(Closing):
         self.verifier.close()
         self.refiner.close()
 
+    def _disagrees(self, obj_id: int, T_cand: np.ndarray, T_refined: np.ndarray) -> bool:
+        """Whether a candidate may compete with the refined pose: some model point farther apart
+        than ``min_gap`` x the diameter (any candidate when min_gap is 0)."""
+        return self.conf.min_gap <= 0 or _max_displacement(self._points[int(obj_id)], T_cand, T_refined) > \
+            self.conf.min_gap * self.db[int(obj_id)].diameter
+
     def _competes(self, it: ViewItem) -> bool:
-        """Whether some candidate of the item disagrees with its refined pose by more than
-        ``min_gap`` x the diameter (only such a candidate may replace it)."""
-        if not len(it.T_cands):
-            return False
-        if self.conf.min_gap <= 0:
-            return True
-        pts = self._points[it.obj_id]
-        lim = self.conf.min_gap * self.db[int(it.obj_id)].diameter
-        return any(_max_displacement(pts, T, it.T_refined) > lim for T in np.asarray(it.T_cands).reshape(-1, 4, 4))
+        """Whether some candidate of the item disagrees with its refined pose (only such a
+        candidate may replace it)."""
+        return any(self._disagrees(it.obj_id, T, it.T_refined) for T in np.asarray(it.T_cands).reshape(-1, 4, 4))
 
     def check(self, items: list[ViewItem], images, Ks: dict) -> CheckResult:
         """Check items of one group: images {im_id: (H, W, 3) uint8} (any mapping, e.g.
@@ -270,7 +270,7 @@ class ImageChecker(Closing):
         diam = np.array([self.db[int(o)].diameter for o in obj])
         for q in range(m, len(Ts)):  # few candidates per item
             j = det[q]
-            if c.min_gap > 0 and _max_displacement(self._points[int(obj[j])], Ts[q], Ts[j]) <= c.min_gap * diam[j]:
+            if not self._disagrees(obj[j], Ts[q], Ts[j]):
                 continue
             if sc[q] > cand_best[j]:
                 cand_best[j], cand_arg[j] = sc[q], q

@@ -250,24 +250,21 @@ def load_label_table(ds: BopDataset, obj_ids, n_points: int = 32, symmetry_steps
     """LabelTable of ``obj_ids`` from the dataset's models folder (points and symmetry sets);
     with ``groups`` (label groups resolved on ``ds``) the labels that may be associated."""
     infos = ds.models_info()
-    pts, syms, align, cont, axes = [], [], [], [], []
+    pts, syms, cont, axes = [], [], [], []
     for o in obj_ids:
         info = infos[int(o)]
         X = model_points(ds.model_path(o), n_points)
         pts.append(X)
         syms.append(symmetry_set(info.symmetries_discrete, info.symmetries_continuous, symmetry_steps))
         cont.append(bool(info.symmetries_continuous))
-        if info.symmetries_continuous:  # align on the axis: invariant under the continuous symmetry
+        if info.symmetries_continuous:  # the symmetry axis (direction, a point on it)
             a = np.asarray(info.symmetries_continuous[0]["axis"], dtype=np.float64)
-            a = a / np.linalg.norm(a)
             c = np.asarray(info.symmetries_continuous[0].get("offset", np.zeros(3)), dtype=np.float64)
-            align.append(c + ((X - c) @ a)[:, None] * a)
-            axes.append((a, c))
+            axes.append((a / np.linalg.norm(a), c))
         else:
-            align.append(X)
             axes.append(None)
     compat, model_align = label_groups.compat_arrays(groups, obj_ids) if groups is not None else (None, None)
-    return LabelTable(obj_ids, pts, syms, align_points=align, continuous=cont, axes=axes, compat=compat,
+    return LabelTable(obj_ids, pts, syms, continuous=cont, axes=axes, compat=compat,
                       model_align=model_align)
 
 
@@ -398,8 +395,8 @@ def _collapse(res: GroupResult, rank: np.ndarray, det: np.ndarray,
         linked=res.linked, n_hypotheses=res.n_hypotheses, edges=det[res.edges] if len(res.edges) else res.edges,
         edge_dist=res.edge_dist, edge_pair=res.edge_pair, edge_kept=res.edge_kept, threshold_mm=res.threshold_mm,
         link_kind=res.link_kind, residual_scale=res.residual_scale,
-        cand_fit=None if res.cand_fit is None else res.cand_fit[chosen], fit_residual_mm=res.fit_residual_mm,
-        z_mm=res.z_mm), chosen, rank[chosen]
+        cand_fit=None if res.cand_fit is None else res.cand_fit[chosen],
+        fit_residual_mm=res.fit_residual_mm), chosen, rank[chosen]
 
 
 def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = True, hyps=None):

@@ -194,15 +194,13 @@ class LabelTable:
     ``points[l]``: (N, 3) mm, the same N for every label (the paper's D_l is a mean over the
     model's points; a few dozen well-spread points are enough to rank hypotheses).
     ``symmetries[l]``: (K_l, 4, 4), identity first, continuous symmetries discretised.
-    ``align_points[l]``: (N, 3) points used by the least-squares refit where a rotation mean is
-    not possible (default: ``points``; projected on the axis for objects with a continuous
-    symmetry). ``continuous[l]``: the object has a continuous symmetry (default: K_l >= 64).
+    ``continuous[l]``: the object has a continuous symmetry (default: K_l >= 64).
     ``axes[l]``: None or (axis (3,), point on the axis (3,) mm) of its continuous symmetry,
     for the invariant-based bound on second pairs (used only if every symmetry of the set maps
     that axis onto itself).
     """
 
-    def __init__(self, obj_ids, points, symmetries, align_points=None, continuous=None, axes=None,
+    def __init__(self, obj_ids, points, symmetries, continuous=None, axes=None,
                  n_clusters: int = 8, compat=None, model_align=None):
         self.obj_ids = np.asarray(obj_ids, dtype=np.int64)
         L = len(self.obj_ids)
@@ -220,8 +218,6 @@ class LabelTable:
         if X.ndim != 3 or X.shape[0] != L or X.shape[2] != 3:
             raise ValueError(f"points: expected {L} arrays of shape (N, 3), got {X.shape}")
         self.points = X
-        self.align_points = X if align_points is None else \
-            np.stack([np.asarray(p, dtype=np.float64) for p in align_points])
         self.n_sym = np.array([len(s) for s in symmetries], dtype=np.int64)
         # labels with a continuous symmetry (their rotation about the axis is not observable)
         self.continuous = (self.n_sym >= 64) if continuous is None else np.asarray(continuous, dtype=bool)
@@ -459,7 +455,6 @@ class GroupResult:
     # weight of its label in the object's vote (with its score, see label_groups.vote_labels)
     cand_fit: np.ndarray | None = None
     fit_residual_mm: np.ndarray | None = None  # (P,) RMS of D_l over the pair's final associations, mm (NaN: none)
-    z_mm: np.ndarray | None = None  # (P,) distance of the pair's objects to the cameras (mean of its views' medians), mm
 
     @property
     def n_objects(self) -> int:
@@ -1369,7 +1364,7 @@ def match_groups(groups, table: LabelTable, params: MatchParams = MatchParams(),
             linked=linked[sl], n_hypotheses=n_hyp[sl], edges=e_in[sel] - c0, edge_dist=ed[sel],
             edge_pair=evp[sel] - vp0, edge_kept=kept[sel], threshold_mm=g.thr_vp[sl].copy(),
             link_kind=link_kind[sl].copy(), residual_scale=float(scale[k]), cand_fit=fit_in[c0:c0 + n_k],
-            fit_residual_mm=fit_res[sl].copy(), z_mm=g.z_vp[sl].copy()))
+            fit_residual_mm=fit_res[sl].copy()))
         c0, vp0, f0 = c0 + n_k, vp0 + n_vp_k, f0 + nv_k
     return results
 
