@@ -132,10 +132,20 @@ class PoseNet(nn.Module):
         return net
 
 
+BATCHNORM_MOMENTUM = 0.1  # torch's default; efficientnet_pytorch sets 0.01
+
+
 def _init_backbone(module: nn.Module) -> None:
     """He (fan-in) initialisation of convolutions, unit BatchNorm. (In eval mode an untrained
     network still has near-zero features, as BatchNorm's running statistics are not yet learned;
-    train-mode forward passes set them.)"""
+    train-mode forward passes set them.)
+
+    BatchNorm's running statistics follow the batches with momentum :data:`BATCHNORM_MOMENTUM`
+    (0.1) instead of efficientnet_pytorch's 0.01: with 0.01 they lag the weights by ~100 steps,
+    and a network trained for a few hundred steps is far worse in eval mode than in train mode
+    (overfitting 16 fixed refiner samples for 300 steps: pose error 65 -> 5.7 mm in train mode,
+    34 mm in eval mode; with 0.1: 85 -> 9.3 mm in eval mode after 200 steps). Only training sees the
+    momentum; loaded weights (CosyPose's included) are unchanged."""
     for m in module.modules():
         if isinstance(m, nn.Conv2d):
             nn.init.kaiming_normal_(m.weight, mode="fan_in")
@@ -144,6 +154,7 @@ def _init_backbone(module: nn.Module) -> None:
         elif isinstance(m, nn.BatchNorm2d):
             nn.init.ones_(m.weight)
             nn.init.zeros_(m.bias)
+            m.momentum = BATCHNORM_MOMENTUM
 
 
 def prepare_inputs(observed: np.ndarray, rendered: np.ndarray, masks: np.ndarray | None = None) -> np.ndarray:
