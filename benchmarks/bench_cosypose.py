@@ -39,7 +39,7 @@ def main():
     torch.set_num_threads(args.threads)
     from cosy_cli.objects import ObjectDatabase
     from cosy_cli.rendering import SceneRenderer
-    from cosy_cli.singleview import cosypose_compat as cc
+    from cosy_cli.singleview.networks import cosypose_compat as cc
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_cosypose_"))
     coarse = args.coarse or cc.export_onnx(FIX / "run_b3_coarse", tmp / "coarse.onnx", log=lambda *_: None)

@@ -20,7 +20,7 @@ depth, or a short ICP of 32 hypotheses and the full ICP of the best 12, picked b
 image score), ``new-top5`` (new, 5 hypotheses to ICP), ``new-noscreen`` (with depth: the first 16
 verified hypotheses to ICP, no short-ICP screen: the default before 2026-12-02), ``new-vt64``
 (64 hypotheses verified), ``new-fitonly`` (ICP pick by depth fit alone: ``image_weight 0``), ``search``, ``contour`` and ``search+contour`` (RGB: the local search,
-the contour alignment (:mod:`cosy_cli.singleview.contour`), or both). Also prints
+the contour alignment (:mod:`cosy_cli.singleview.training_free.contour`), or both). Also prints
 the fraction of rotations within 15 deg (modulo symmetries), the median translation error (mm)
 and time per image.
 
@@ -259,9 +259,9 @@ def sweep(scene_ids, names, templates_dir: Path) -> None:
     from cosy_cli.evaluation.pose_error import mspd, mssd
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
-    from cosy_cli.singleview import templates as tpl
+    from cosy_cli.singleview.training_free import templates as tpl
     from cosy_cli.singleview.estimate_stage import VERIFY_TOP_RGB, ensure_templates
-    from cosy_cli.singleview.verify import Verifier, VerifyConf
+    from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf
 
     root = REALDATA / "lmo_dev"
     ds = BopDataset(root, "test")

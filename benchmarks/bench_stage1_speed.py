@@ -82,14 +82,20 @@ VARIANTS = {
 
 
 def load_ref_module(name: str, rev: str):
-    """The module ``cosy_cli.singleview.<name>`` as it is at git revision ``rev``, imported under
-    the name ``cosy_cli.singleview._ref_<name>`` (its relative imports resolve to the working tree)."""
-    rel = f"src/cosy_cli/singleview/{name}.py"
-    text = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:{rel}"], check=True, capture_output=True,
-                          text=True).stdout
+    """The module ``<name>`` of ``cosy_cli.singleview`` (its ``training_free/`` or ``networks/``
+    subpackage since they exist, the package itself before) as it is at git revision ``rev``,
+    imported as ``_ref_<name>`` in the package it came from (its relative imports resolve to the
+    working tree)."""
+    for sub in ("training_free", "networks", ""):
+        rel = "/".join(p for p in ("src/cosy_cli/singleview", sub, f"{name}.py") if p)
+        r = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:{rel}"], capture_output=True, text=True)
+        if r.returncode == 0:
+            break
+    else:
+        raise SystemExit(f"no module {name} of cosy_cli.singleview at {rev}")
     path = Path(tempfile.mkdtemp(prefix="cosy_ref_")) / f"{name}.py"
-    path.write_text(text)
-    modname = f"cosy_cli.singleview._ref_{name}"
+    path.write_text(r.stdout)
+    modname = ".".join(p for p in ("cosy_cli.singleview", sub, f"_ref_{name}") if p)
     spec = importlib.util.spec_from_file_location(modname, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[modname] = mod
@@ -160,8 +166,8 @@ def main() -> None:
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
     from cosy_cli.singleview import estimate_stage as es
-    from cosy_cli.singleview import templates as tpl
-    from cosy_cli.singleview import icp, verify
+    from cosy_cli.singleview.training_free import templates as tpl
+    from cosy_cli.singleview.training_free import icp, verify
 
     args.work.mkdir(parents=True, exist_ok=True)
     root, split, models = prepare(args.data, args.work)

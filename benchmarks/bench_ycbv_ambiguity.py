@@ -1,12 +1,12 @@
 """What a geometry-only pose can reach on the YCB-V frames of ``../shared/realdata/ycbv_0000``.
 
 The meshes there have no texture images. Each object's GT pose is composed with each of its
-near-symmetries (:func:`cosy_cli.singleview.depth_hypotheses.near_symmetries`: rigid motions that
+near-symmetries (:func:`cosy_cli.singleview.training_free.depth_hypotheses.near_symmetries`: rigid motions that
 carry most of the surface onto itself, e.g. a box turned over, a mug turned about its body when
 its handle is hidden), and every variant is evaluated like a prediction (BOP19: VSD, MSSD, MSPD,
 ``cosy evaluate``). Prints per object the BOP19 AR of the GT and the mean over the GT and its
 variants (what a uniform pick among them would score), and the same mean over only the variants
-whose visible-depth score (:func:`~cosy_cli.singleview.depth_hypotheses.visible_depth_score`, the
+whose visible-depth score (:func:`~cosy_cli.singleview.training_free.depth_hypotheses.visible_depth_score`, the
 score the depth path picks with) is within ``--tie`` of the GT's: the poses depth cannot tell
 apart.
 
@@ -49,7 +49,7 @@ def main() -> None:
     from cosy_cli.io import bop
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
-    from cosy_cli.singleview.depth_hypotheses import near_symmetries, visible_depth_score
+    from cosy_cli.singleview.training_free.depth_hypotheses import near_symmetries, visible_depth_score
 
     root, split = prepare_ycbv(src, args.work / "ycbv_0000"), "train_real"  # + scene_gt_info.json (VSD needs it)
     ds = BopDataset(root, split)

@@ -14,9 +14,9 @@ import torch
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from cosy_cli.singleview.losses import disentangled_loss, pad_symmetries  # noqa: E402
-from cosy_cli.singleview.model import prepare_inputs  # noqa: E402
-from cosy_cli.singleview.pose_update import identity_output  # noqa: E402
+from cosy_cli.singleview.networks.losses import disentangled_loss, pad_symmetries  # noqa: E402
+from cosy_cli.singleview.networks.model import prepare_inputs  # noqa: E402
+from cosy_cli.singleview.networks.pose_update import identity_output  # noqa: E402
 from cosy_cli.training.data import SampleGenerator  # noqa: E402
 from cosy_cli.training.train import _load_objects, load_run  # noqa: E402
 

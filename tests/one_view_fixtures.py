@@ -48,7 +48,7 @@ def one_image_dataset(root: Path, keep: dict[int, list[int] | None] | None = Non
 
 
 def tiny_templates(folder: Path) -> Path:
-    from cosy_cli.singleview import templates as tpl
+    from cosy_cli.singleview.training_free import templates as tpl
 
     tpl.main(TINY_TEMPLATES, DATA / "models", folder, log=lambda m: None, progress=False)
     return folder

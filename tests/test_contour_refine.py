@@ -1,4 +1,4 @@
-"""Tests of the contour alignment (cosy_cli.singleview.contour): a training-free RGB refinement
+"""Tests of the contour alignment (cosy_cli.singleview.training_free.contour): a training-free RGB refinement
 that aligns the rendered outline with the image, accepted only where the verification score
 improves.
 
@@ -21,8 +21,8 @@ from cosy_cli.evaluation.pose_error import mssd  # noqa: E402
 from cosy_cli.geometry.rotations import rotation_about_axis  # noqa: E402
 from cosy_cli.io.dataset import BopDataset  # noqa: E402
 from cosy_cli.objects.database import ObjectDatabase  # noqa: E402
-from cosy_cli.singleview.contour import ContourConf, ContourRefiner, refine_contour  # noqa: E402
-from cosy_cli.singleview.verify import Verifier, observe  # noqa: E402
+from cosy_cli.singleview.training_free.contour import ContourConf, ContourRefiner, refine_contour  # noqa: E402
+from cosy_cli.singleview.training_free.verify import Verifier, observe  # noqa: E402
 from painted_part import painted_part_view  # noqa: E402
 from realdata import LMO, needs  # noqa: E402
 
@@ -153,7 +153,7 @@ def test_estimator_runs_the_contour_step(scene):
     """`cosy estimate`'s chain with rgb_refine contour (and search+contour): the step runs, is timed,
     and its pose scores at least as well as the verified hypothesis it started from."""
     from cosy_cli.singleview import estimate_stage
-    from cosy_cli.singleview import templates as tp
+    from cosy_cli.singleview.training_free import templates as tp
 
     db, obj, rgb, K, T_gt, box = scene
     ts = tp.build_templates(db, "fast", progress=False)

@@ -38,7 +38,7 @@ def case():
 
 @pytest.fixture(scope="module")
 def cc():
-    from cosy_cli.singleview import cosypose_compat
+    from cosy_cli.singleview.networks import cosypose_compat
 
     return cosypose_compat
 

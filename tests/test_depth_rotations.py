@@ -1,4 +1,4 @@
-"""With depth, right rotations (cosy_cli.singleview.depth_hypotheses): near-symmetries of objects,
+"""With depth, right rotations (cosy_cli.singleview.training_free.depth_hypotheses): near-symmetries of objects,
 the visibility-aware depth score on constructed depth maps, and the depth chain of `cosy estimate`
 on a real YCB-V RGB-D frame (../shared/realdata/ycbv_0000, skipped when absent)."""
 
@@ -17,7 +17,7 @@ from cosy_cli.io import bop  # noqa: E402
 from cosy_cli.io.dataset import BopDataset  # noqa: E402
 from cosy_cli.objects import ObjectDatabase  # noqa: E402
 from cosy_cli.objects.database import model_info_from_mesh  # noqa: E402
-from cosy_cli.singleview import depth_hypotheses as dh  # noqa: E402
+from cosy_cli.singleview.training_free import depth_hypotheses as dh  # noqa: E402
 from realdata import YCBV, needs  # noqa: E402
 
 W, H = 320, 240
@@ -150,7 +150,7 @@ def test_screen_reaches_past_top_k(db):
     """refine_and_rank with a screen: the right rotation, 9th of 12 hypotheses, is found by the
     short ICP of all 12 and goes on to the full ICP; without the screen only the first 4 are
     refined and all of them are wrong (ICP does not turn a pose by more than 30 deg)."""
-    from cosy_cli.singleview.icp import IcpConf
+    from cosy_cli.singleview.training_free.icp import IcpConf
 
     R_true = rotation_about_axis(np.array([1.0, 0.3, 0.2]), [0.7])[0]
     T = make_pose(R_true, [10.0, -5.0, 500.0])
@@ -181,7 +181,7 @@ def test_ycbv_frames_rotations(tmp_path_factory):
     right rotation in at least 4 of them (5 at the defaults of 2026-12-02; which frames is a near
     coin toss; the chain before verification, 5 template hypotheses to ICP, gets 2)."""
     from cosy_cli.singleview import estimate_stage as es
-    from cosy_cli.singleview.templates import TemplateSet
+    from cosy_cli.singleview.training_free.templates import TemplateSet
 
     ds = BopDataset(YCBV, "train_real")
     db = ObjectDatabase.from_models_dir(YCBV / "models")

@@ -193,7 +193,7 @@ def test_detect_from_gt_feeds_estimate_and_is_cached(tmp_path, ds):
     assert r.exit_code == 0 and "skipping" not in r.output
 
     # `cosy estimate --detections` takes the file unchanged (tiny templates: fast)
-    from cosy_cli.singleview import templates
+    from cosy_cli.singleview.training_free import templates
 
     tpl = tmp_path / "templates"
     templates.main({"viewpoints": 30, "inplane": 6}, SAMPLES / "models", tpl, log=lambda *_: None)

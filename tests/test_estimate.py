@@ -31,7 +31,7 @@ def ds():
 @pytest.fixture(scope="module")
 def templates_dir(tmp_path_factory):
     """Templates of the sample objects at a reduced resolution (fast to build)."""
-    from cosy_cli.singleview import templates
+    from cosy_cli.singleview.training_free import templates
 
     out = tmp_path_factory.mktemp("tpl") / "templates"
     templates.main(SMALL_TEMPLATES, SAMPLES / "models", out, log=lambda *_: None)

@@ -374,7 +374,7 @@ def test_refine_skips_image_work_that_cannot_change_its_output(tmp_path, monkeyp
 
     from cosy_cli.io import bop
     from cosy_cli.multiview import match_stage, refine_stage
-    from cosy_cli.singleview import verify
+    from cosy_cli.singleview.training_free import verify
     from cosy_cli.synth import candidates as synth_candidates
 
     data = Path(__file__).resolve().parents[1] / "data_samples"

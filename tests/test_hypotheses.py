@@ -265,7 +265,7 @@ SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 @pytest.fixture(scope="module")
 def sample_templates(tmp_path_factory):
     """Templates of the sample objects at a reduced resolution (fast to build)."""
-    from cosy_cli.singleview import templates
+    from cosy_cli.singleview.training_free import templates
 
     out = tmp_path_factory.mktemp("tpl") / "templates"
     templates.main({"viewpoints": 200, "inplane": 24}, SAMPLES / "models", out, log=lambda *_: None)

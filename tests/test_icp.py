@@ -1,4 +1,4 @@
-"""Depth refinement of single-view candidates (cosy_cli.singleview.icp): trimmed point-to-plane ICP
+"""Depth refinement of single-view candidates (cosy_cli.singleview.training_free.icp): trimmed point-to-plane ICP
 against rendered depth maps of the data_samples objects on a table, and the depth fit score."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from cosy_cli.geometry import (  # noqa: E402
 )
 from cosy_cli.io.dataset import BopDataset  # noqa: E402
 from cosy_cli.objects import ObjectDatabase  # noqa: E402
-from cosy_cli.singleview.icp import DepthRefineResult, IcpConf, depth_fit_score, refine_with_depth  # noqa: E402
+from cosy_cli.singleview.training_free.icp import DepthRefineResult, IcpConf, depth_fit_score, refine_with_depth  # noqa: E402
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 W, H = 320, 240

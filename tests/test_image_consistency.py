@@ -55,7 +55,7 @@ def clean(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def templates_dir(tmp_path_factory, clean) -> Path:
-    from cosy_cli.singleview import templates
+    from cosy_cli.singleview.training_free import templates
 
     out = tmp_path_factory.mktemp("tpl") / "templates"
     templates.main(SMALL_TEMPLATES, clean / "models", out, log=lambda *_: None)

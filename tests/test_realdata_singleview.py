@@ -1,4 +1,4 @@
-"""Tests of the training-free stage 1 on real and synthetic images (cosy_cli.singleview.verify):
+"""Tests of the training-free stage 1 on real and synthetic images (cosy_cli.singleview.training_free.verify):
 verification by rendering and the RGB refinement.
 
 The real-image test reads ../shared/realdata/lmo_dev (skipped when absent) and uses two images of
@@ -19,8 +19,8 @@ from cosy_cli.evaluation.pose_error import mspd, mssd  # noqa: E402
 from cosy_cli.geometry.rotations import rotation_about_axis  # noqa: E402
 from cosy_cli.io.dataset import BopDataset  # noqa: E402
 from cosy_cli.objects.database import ObjectDatabase  # noqa: E402
-from cosy_cli.singleview import templates as tp  # noqa: E402
-from cosy_cli.singleview.verify import Verifier, VerifyConf, observe  # noqa: E402
+from cosy_cli.singleview.training_free import templates as tp  # noqa: E402
+from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf, observe  # noqa: E402
 from painted_part import painted_part_view  # noqa: E402
 from realdata import LMO, needs  # noqa: E402
 

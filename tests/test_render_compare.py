@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from cosy_cli.rendering import SceneRenderer  # noqa: F401  (selects the GL platform first)
-from cosy_cli.singleview.model import PoseNet  # noqa: E402
-from cosy_cli.singleview.onnx import OnnxPoseNet, export_onnx  # noqa: E402
-from cosy_cli.singleview.pose_update import update_targets  # noqa: E402
-from cosy_cli.singleview.render_compare import RenderAndCompare  # noqa: E402
+from cosy_cli.singleview.networks.model import PoseNet  # noqa: E402
+from cosy_cli.singleview.networks.onnx import OnnxPoseNet, export_onnx  # noqa: E402
+from cosy_cli.singleview.networks.pose_update import update_targets  # noqa: E402
+from cosy_cli.singleview.networks.render_compare import RenderAndCompare  # noqa: E402
 from cosy_cli.training.data import SampleGenerator, synthetic_source  # noqa: E402
 
 CROP = (64, 48)

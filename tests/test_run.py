@@ -26,7 +26,7 @@ SMALL_TEMPLATES = {"viewpoints": 200, "inplane": 24}
 
 @pytest.fixture(scope="module")
 def templates_dir(tmp_path_factory):
-    from cosy_cli.singleview import templates as tpl
+    from cosy_cli.singleview.training_free import templates as tpl
 
     d = tmp_path_factory.mktemp("run_templates") / "templates"
     tpl.main(SMALL_TEMPLATES, DATA / "models", d, log=lambda m: None, progress=False)

@@ -11,11 +11,11 @@ from cosy_cli.geometry.camera import crop_affine, crop_intrinsics, project
 from cosy_cli.geometry.poses import make_pose
 from cosy_cli.geometry.rotations import axis_angle_to_matrix, random_rotations
 from cosy_cli.objects.symmetries import symmetry_set
-from cosy_cli.singleview.crops import (
+from cosy_cli.singleview.networks.crops import (
     CANONICAL_ROTATION, boxes_from_detections, boxes_from_poses, canonical_depth_from_boxes, canonical_poses, crop_images, make_crops,
 )
-from cosy_cli.singleview.losses import disentangled_loss, pad_symmetries, symmetric_l1_distance
-from cosy_cli.singleview.pose_update import (
+from cosy_cli.singleview.networks.losses import disentangled_loss, pad_symmetries, symmetric_l1_distance
+from cosy_cli.singleview.networks.pose_update import (
     IDENTITY_OUTPUT, apply_update, apply_update_parts, identity_output, split_output, update_targets,
 )
 
@@ -258,7 +258,7 @@ def test_disentangled_terms_respond_only_to_their_component():
 def _calibrated_net(kind="refiner", n_inputs=6, seed=0):
     """A PoseNet with learned-looking BatchNorm statistics and a random head (so outputs depend
     on the input in eval mode, as a trained network's do)."""
-    from cosy_cli.singleview.model import PoseNet
+    from cosy_cli.singleview.networks.model import PoseNet
 
     torch.manual_seed(seed)
     net = PoseNet(kind, "efficientnet-b0", n_inputs, CROP)
@@ -274,7 +274,7 @@ def _calibrated_net(kind="refiner", n_inputs=6, seed=0):
 
 
 def test_posenet_starts_at_identity_and_overfits_a_tiny_batch():
-    from cosy_cli.singleview.model import PoseNet, prepare_inputs
+    from cosy_cli.singleview.networks.model import PoseNet, prepare_inputs
 
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
@@ -311,7 +311,7 @@ def test_posenet_starts_at_identity_and_overfits_a_tiny_batch():
 
 
 def test_posenet_seven_channels_and_checkpoint_round_trip():
-    from cosy_cli.singleview.model import PoseNet, prepare_inputs
+    from cosy_cli.singleview.networks.model import PoseNet, prepare_inputs
 
     net = _calibrated_net(n_inputs=7)
     rng = np.random.default_rng(1)
@@ -328,7 +328,7 @@ def test_posenet_seven_channels_and_checkpoint_round_trip():
 @pytest.mark.parametrize("dynamo", [False, True], ids=["torchscript", "dynamo"])
 def test_onnx_matches_torch(tmp_path, dynamo):
     from cosy_cli.errors import CosyError
-    from cosy_cli.singleview.onnx import OnnxPoseNet, export_onnx
+    from cosy_cli.singleview.networks.onnx import OnnxPoseNet, export_onnx
 
     net = _calibrated_net()
     path = export_onnx(net, tmp_path / "refiner.onnx", dynamo=dynamo)

@@ -18,8 +18,8 @@ from cosy_cli.geometry.camera import crop_affine  # noqa: E402
 from cosy_cli.geometry.poses import make_pose  # noqa: E402
 from cosy_cli.geometry.rotations import random_rotations, rotation_about_axis  # noqa: E402
 from cosy_cli.objects.database import ObjectDatabase  # noqa: E402
-from cosy_cli.singleview import templates as tp  # noqa: E402
-from cosy_cli.singleview.verify import Verifier, VerifyConf, observe  # noqa: E402
+from cosy_cli.singleview.training_free import templates as tp  # noqa: E402
+from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf, observe  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "data_samples" / "models"
@@ -111,7 +111,7 @@ def test_atlas_render_equals_single_renders(painted):
 
 def _reference_terms(v: Verifier, obs, det, ids, T):
     """The verification terms computed per hypothesis on whole crops (slow, plain)."""
-    from cosy_cli.singleview.templates import orientation_bins
+    from cosy_cli.singleview.training_free.templates import orientation_bins
 
     c, S = v.conf, v.conf.crop
     Ks = np.stack([obs[d].K for d in det])

@@ -1,4 +1,4 @@
-"""Tests of cosy_cli.singleview.templates: viewpoints and symmetry dedupe, descriptors against
+"""Tests of cosy_cli.singleview.training_free.templates: viewpoints and symmetry dedupe, descriptors against
 re-renders, retrieval on renders at random poses, the stage's manifest/skip/rebuild logic, the CLI."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from cosy_cli.errors import CosyError  # noqa: E402
 from cosy_cli.geometry.poses import make_pose  # noqa: E402
 from cosy_cli.geometry.rotations import random_rotations, rotation_about_axis  # noqa: E402
 from cosy_cli.objects.database import ObjectDatabase  # noqa: E402
-from cosy_cli.singleview import templates as tp  # noqa: E402
+from cosy_cli.singleview.training_free import templates as tp  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "data_samples"
 MODELS = DATA / "models"

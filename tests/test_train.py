@@ -75,7 +75,7 @@ def test_refuse_existing_and_resume(run, dataset):
 
 
 def test_export_matches_torch(run, tmp_path):
-    from cosy_cli.singleview.onnx import OnnxPoseNet
+    from cosy_cli.singleview.networks.onnx import OnnxPoseNet
 
     out, _ = run
     path = train.export(out, tmp_path / "m.onnx", log=lambda *_: None)

@@ -18,9 +18,9 @@ import pytest
 import torch
 
 from cosy_cli.rendering import SceneRenderer  # noqa: F401  (selects the GL platform first)
-from cosy_cli.singleview.losses import disentangled_loss, pad_symmetries, symmetric_l1_distance  # noqa: E402
-from cosy_cli.singleview.model import PoseNet, prepare_inputs  # noqa: E402
-from cosy_cli.singleview.pose_update import apply_update  # noqa: E402
+from cosy_cli.singleview.networks.losses import disentangled_loss, pad_symmetries, symmetric_l1_distance  # noqa: E402
+from cosy_cli.singleview.networks.model import PoseNet, prepare_inputs  # noqa: E402
+from cosy_cli.singleview.networks.pose_update import apply_update  # noqa: E402
 from cosy_cli.synth.objects import solid_mesh  # noqa: E402
 from cosy_cli.training.data import SampleGenerator  # noqa: E402
 

@@ -14,7 +14,7 @@ from .common import user_errors
 def _size(ctx, param, value):
     if value is None:
         return None
-    from ..singleview.templates import parse_size
+    from ..singleview.training_free.templates import parse_size
 
     try:
         w, h = parse_size(value)
@@ -47,7 +47,7 @@ def templates(models_dir: Path, out: Path, conf: str, viewpoints, inplane, crop,
     Skips when OUT is up to date; rebuilds only the objects whose model file or models_info entry
     changed. Files are written atomically, so an interrupted build resumes."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    from ..singleview import templates as tpl
+    from ..singleview.training_free import templates as tpl
 
     c = tpl.resolve_conf(conf, viewpoints=viewpoints, inplane=inplane, crop=crop, features=features)
     tpl.main(c, models_dir, out, overwrite=overwrite, log=click.echo)

@@ -168,7 +168,7 @@ def export(run, out, accuracy) -> None:
     (B, 9) raw pose update, for `cosy estimate --coarse/--refiner`.
     """
     from ..detection import train as det_train
-    from ..singleview import cosypose_compat
+    from ..singleview.networks import cosypose_compat
 
     if cosypose_compat.is_cosypose_run(run):
         if accuracy is not None:

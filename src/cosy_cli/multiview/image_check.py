@@ -6,10 +6,10 @@ along a view's ray barely shows in the reprojection error: where the other views
 off in depth, the adjustment can move a right single-view candidate 30-70 mm along its ray (LM-O
 dev scenes). The images say which is right. For each placed view and each refined object
 predicted in it, this module scores with the single-view verification score
-(:class:`~cosy_cli.singleview.verify.Verifier`, no template prior):
+(:class:`~cosy_cli.singleview.training_free.verify.Verifier`, no template prior):
 
 - ``refined``: the refined pose in that view, T_cam_obj = inv(T_world_cam) T_world_obj;
-- ``aligned`` (``align``): the contour alignment (:func:`~cosy_cli.singleview.contour.refine_contour`,
+- ``aligned`` (``align``): the contour alignment (:func:`~cosy_cli.singleview.training_free.contour.refine_contour`,
   with its accept test) started from the refined pose -- it keeps the multi-view rotation and
   moves the outline onto the image; kept only when it scores strictly higher than the refined pose;
 - ``candidate``: the view's own candidates of that object (the object's candidates in that view).
@@ -175,8 +175,8 @@ class ImageChecker(Closing):
     conf: ImageCheckConf. Renderers are made on first use; use as a context manager or close()."""
 
     def __init__(self, db, conf: ImageCheckConf | None = None):
-        from ..singleview.contour import ContourConf, ContourRefiner
-        from ..singleview.verify import Verifier, VerifyConf
+        from ..singleview.training_free.contour import ContourConf, ContourRefiner
+        from ..singleview.training_free.verify import Verifier, VerifyConf
 
         self.db = db
         self.conf = conf or ImageCheckConf()
@@ -208,8 +208,8 @@ class ImageChecker(Closing):
         missing from ``images`` keep their refined poses. One verification render for all
         hypotheses, one contour alignment per view. Without the alignment, items that no
         candidate competes with are not scored (the refined pose is kept whatever the scores)."""
-        from ..singleview.contour import refine_contour
-        from ..singleview.verify import observe
+        from ..singleview.training_free.contour import refine_contour
+        from ..singleview.training_free.verify import observe
 
         c = self.conf
         n = len(items)
@@ -306,7 +306,7 @@ class ImageChecker(Closing):
         best mean score over the cluster's views when it beats the mean of its own pose by more
         than ``margin``. images {im_id: (H, W, 3) uint8}; Ks {im_id: (3, 3)}; T_world_cam {im_id:
         (4, 4)} mm. One verification render for all clusters."""
-        from ..singleview.verify import observe
+        from ..singleview.training_free.verify import observe
 
         n = len(items)
         T_out = np.stack([np.asarray(it.T_cam_obj, dtype=np.float64) for it in items]) if n else np.zeros((0, 4, 4))

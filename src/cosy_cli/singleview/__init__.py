@@ -1,10 +1,12 @@
-"""Single-view pose estimation (paper Appendix A): render-and-compare coarse and refiner networks.
+"""Single-view pose estimation (CosyPose stage 1): detections in, object candidates out.
 
-- ``crops``: the cropping strategy (crop centred on the projected object origin, sized from the
-  projected model points, enlarged and fitted to the network aspect ratio) and the coarse model's
-  canonical input pose.
-- ``pose_update``: the DeepIM/CosyPose update F(T^k, [v_x, v_y, v_z], R) and its inverse (torch).
-- ``losses``: the disentangled symmetric L1 point loss (torch).
-- ``model``: ``PoseNet`` (EfficientNet backbone + linear head, 9 outputs).
-- ``onnx``: export to ONNX and an onnxruntime runner.
+- ``estimate_stage``: ``cosy estimate``, the one place that chooses among the two paths.
+- ``networks``: the render-and-compare networks of the paper (Appendix A): crops and the coarse
+  model's canonical pose (``crops``), the pose update F (``pose_update``), the disentangled
+  symmetric L1 loss (``losses``), ``PoseNet`` (``model``), ONNX export and runner (``onnx``), the
+  coarse/refiner inference loop (``render_compare``), CosyPose's published checkpoints
+  (``cosypose_compat``).
+- ``training_free``: template retrieval (``templates``), verification by rendering
+  (``verify``), contour alignment (``contour``), depth ICP (``icp``) and its near-symmetry
+  hypotheses (``depth_hypotheses``).
 """

@@ -6,18 +6,18 @@ with ``from_gt``) becomes one object candidate: label, the detector's score and 
 
 1. **coarse**: ``network`` (the paper's coarse render-and-compare model, one step from the
    canonical pose) or ``templates`` (training-free retrieval of the top-k rendered views,
-   :mod:`~cosy_cli.singleview.templates`);
+   :mod:`~cosy_cli.singleview.training_free.templates`);
    With templates, ``verify_top`` hypotheses are first re-ranked by rendering them against the
-   image (:mod:`~cosy_cli.singleview.verify`) and the ``top_k`` best kept (with depth and
+   image (:mod:`~cosy_cli.singleview.training_free.verify`) and the ``top_k`` best kept (with depth and
    ``icp_screen`` > ``top_k``: the ``top_k`` best of the first ``icp_screen`` after a short ICP);
 2. with depth, ``depth_refine: icp`` first refines every coarse hypothesis against the observed
-   depth (:mod:`~cosy_cli.singleview.icp`), adds the near-symmetry variants of the best (a box
-   turned over, a mug turned about its body; :mod:`~cosy_cli.singleview.depth_hypotheses`) and
+   depth (:mod:`~cosy_cli.singleview.training_free.icp`), adds the near-symmetry variants of the best (a box
+   turned over, a mug turned about its body; :mod:`~cosy_cli.singleview.training_free.depth_hypotheses`) and
    keeps, per detection, the one with the best visibility-aware depth fit (free space counted)
    plus ``image_weight`` x its image score re-evaluated at the refined pose (when verified);
    without depth the best-scoring hypothesis is kept, then (``rgb_refine: search``) refined on the
    image by a local search on the same image score, and/or (``contour``) by aligning the rendered
-   outline of it and of the runner-up with the image (:mod:`~cosy_cli.singleview.contour`), kept
+   outline of it and of the runner-up with the image (:mod:`~cosy_cli.singleview.training_free.contour`), kept
    where the image score improves;
 3. **refiner**: ``network``, the refiner iterated ``refiner_iterations`` times (paper: 4);
 4. with depth, a last ICP pass after the refiner.
@@ -207,12 +207,12 @@ class Estimator:
             self.refiner_net = self._runner(refiner_model, "refiner", providers)
 
     def _runner(self, path, kind, providers):
-        from . import cosypose_compat
-        from .onnx import OnnxPoseNet
+        from .networks import cosypose_compat
+        from .networks.onnx import OnnxPoseNet
 
         if cosypose_compat.is_cosypose_model(path):  # CosyPose's published networks (run dir or its ONNX)
             return cosypose_compat.make_runner(path, kind, self.db, self.renderer, providers, self.conf["batch_size"])
-        from .render_compare import RenderAndCompare
+        from .networks.render_compare import RenderAndCompare
 
         net = OnnxPoseNet(path, providers=providers)
         if net.kind != kind:
@@ -231,7 +231,7 @@ class Estimator:
     @property
     def verifier(self):
         if self._verifier is None:
-            from .verify import Verifier
+            from .training_free.verify import Verifier
 
             self._verifier = Verifier(self.db)
         return self._verifier
@@ -239,7 +239,7 @@ class Estimator:
     @property
     def contour(self):
         if self._contour is None:
-            from .contour import ContourRefiner
+            from .training_free.contour import ContourRefiner
 
             self._contour = ContourRefiner(self.db)
         return self._contour
@@ -273,7 +273,7 @@ class Estimator:
             hyp = self.coarse_net.coarse(rgb, K, boxes, obj_ids)[:, None]
             hyp_score = np.ones((N, 1))
         else:
-            from .templates import MatchParams, match_templates
+            from .training_free.templates import MatchParams, match_templates
 
             nv = c.get("verify_top", 0)
             verified = nv > 0
@@ -300,7 +300,7 @@ class Estimator:
             res.times["rgb_refine"] = time.perf_counter() - t0
             res.steps["rgb_refine"] = T.copy()
         if rgb_refine in ("contour", "search+contour"):  # contour alignment of the best CONTOUR_TOP hypotheses
-            from .contour import refine_contour
+            from .training_free.contour import refine_contour
 
             t0 = time.perf_counter()
             H = ranked.T_cam_obj[:, :CONTOUR_TOP].copy()
@@ -311,11 +311,11 @@ class Estimator:
             res.times["contour"] = time.perf_counter() - t0
             res.steps["contour"] = T.copy()
         if use_depth:
-            from .icp import IcpConf, refine_with_depth
+            from .training_free.icp import IcpConf, refine_with_depth
 
             t0 = time.perf_counter()
             icp_conf = IcpConf(iterations=c["icp_iterations"])
-            from . import depth_hypotheses as dh
+            from .training_free import depth_hypotheses as dh
 
             # ICP, then pick by depth fit (visibility-aware) + image_weight x the image score re-evaluated
             # at the refined poses (when verified); more hypotheses where none fits the depth, and the
@@ -402,7 +402,7 @@ def ensure_templates(models_dir: str | Path, templates_dir: str | Path, log=prin
     """Build or bring up to date the templates of ``models_dir`` in ``templates_dir``. An existing
     folder keeps the settings it was built with (``cosy templates --viewpoints ...``); a new one
     gets the default settings."""
-    from . import templates as tpl
+    from .training_free import templates as tpl
 
     tdir = Path(templates_dir)
     old = tpl.read_manifest(tdir) if tdir.is_dir() else None
@@ -411,7 +411,7 @@ def ensure_templates(models_dir: str | Path, templates_dir: str | Path, log=prin
 
 def _given_model(given, shipped_path: Path, kind: str, needed: bool) -> Path | None:
     """:func:`cosy_cli.shipped.model_path`, also accepting a CosyPose run directory."""
-    from .cosypose_compat import is_cosypose_run, read_run
+    from .networks.cosypose_compat import is_cosypose_run, read_run
 
     if given is not None and Path(given).is_dir():
         if not is_cosypose_run(given):
@@ -421,7 +421,7 @@ def _given_model(given, shipped_path: Path, kind: str, needed: bool) -> Path | N
 
 
 def model_sha1(path) -> str:
-    from .cosypose_compat import model_sha1 as sha1
+    from .networks.cosypose_compat import model_sha1 as sha1
 
     return sha1(path)
 
@@ -527,7 +527,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
 
     templates = None
     if run_conf["coarse"] == "templates":
-        from . import templates as tpl
+        from .training_free import templates as tpl
 
         tdir = Path(templates_dir) if templates_dir is not None else out.parent / "templates"
         ensure_templates(models_dir, tdir, log=log)

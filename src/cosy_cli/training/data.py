@@ -54,7 +54,7 @@ from ..geometry.rotations import axis_angle_to_matrix, random_rotations, rotatio
 from ..lifetime import Closing
 from ..objects.database import diameter_of
 
-from ..singleview.crops import (  # one definition: train and test agree
+from ..singleview.networks.crops import (  # one definition: train and test agree
     CANONICAL_DEPTH_MM, CANONICAL_ROTATION, canonical_depth_from_boxes, canonical_poses,
 )
 
@@ -84,14 +84,14 @@ DEFAULT_PERTURBATION = Perturbation()
 def canonical_pose(K: np.ndarray, box: np.ndarray, distance_mm: float = DEFAULT_COARSE_DISTANCE_MM,
                    R: np.ndarray | None = None) -> np.ndarray:
     """The coarse model's input pose(s) (..., 4, 4) for boxes (..., 4) (pixel-edge x1, y1, x2, y2):
-    :func:`cosy_cli.singleview.crops.canonical_poses` keeping the boxes' leading shape."""
+    :func:`cosy_cli.singleview.networks.crops.canonical_poses` keeping the boxes' leading shape."""
     box = np.asarray(box, dtype=np.float64)
     return canonical_poses(K, box.reshape(-1, 4), distance_mm, R).reshape(box.shape[:-1] + (4, 4))
 
 
 def depth_from_box(K: np.ndarray, box: np.ndarray, diameter_mm) -> np.ndarray:
     """Depth (mm) at which an object of ``diameter_mm`` spans about the larger side of ``box``:
-    :func:`cosy_cli.singleview.crops.canonical_depth_from_boxes` keeping the boxes' leading shape."""
+    :func:`cosy_cli.singleview.networks.crops.canonical_depth_from_boxes` keeping the boxes' leading shape."""
     box = np.asarray(box, dtype=np.float64)
     return canonical_depth_from_boxes(K, box.reshape(-1, 4), diameter_mm).reshape(box.shape[:-1])
 

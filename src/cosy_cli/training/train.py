@@ -5,8 +5,8 @@ on the fly with domain randomisation (:class:`~cosy_cli.training.data.SampleGene
 dataset's camera (``camera.json`` if present). The ``split`` argument only says which dataset this
 run belongs to (it is recorded in the config): the images of the split are *not* used.
 
-Each step: a generator batch -> :func:`~cosy_cli.singleview.model.prepare_inputs` -> PoseNet ->
-:func:`~cosy_cli.singleview.losses.disentangled_loss` (mm, on ``n_points`` model points per object,
+Each step: a generator batch -> :func:`~cosy_cli.singleview.networks.model.prepare_inputs` -> PoseNet ->
+:func:`~cosy_cli.singleview.networks.losses.disentangled_loss` (mm, on ``n_points`` model points per object,
 min over the symmetries) -> mean -> backward -> Adam. Learning rate: linear warm-up over
 ``warmup`` steps, then constant (``schedule="constant"``) or cosine decay to 5 % at ``iterations``
 (``"cosine"``). fp32 (bf16 autocast measured 10x slower on the 2-core CPU); torch threads = cores.
@@ -106,8 +106,8 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     {"step", "samples", "loss" (last logged means), "checkpoint"}. See the module docstring."""
     import torch
 
-    from ..singleview.losses import disentangled_loss, pad_symmetries
-    from ..singleview.model import PoseNet, prepare_inputs
+    from ..singleview.networks.losses import disentangled_loss, pad_symmetries
+    from ..singleview.networks.model import PoseNet, prepare_inputs
     from .data import SampleGenerator, TrainingStream, make_loader
 
     conf = resolve_conf(conf)
@@ -198,7 +198,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
 
 def load_run(run: str | Path) -> tuple[object, dict]:
     """(PoseNet in eval mode on the CPU, checkpoint dict) of run folder ``run``."""
-    from ..singleview.model import PoseNet
+    from ..singleview.networks.model import PoseNet
 
     return loop.load_run(run, lambda ck: PoseNet.from_checkpoint(ck["model"]), "cosy train", "checkpoint")
 
@@ -206,7 +206,7 @@ def load_run(run: str | Path) -> tuple[object, dict]:
 def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print) -> Path:
     """Export the run's network to ONNX ``out`` and write the model card ``out`` with suffix .md
     (objects, crop size, backbone, training steps and samples, final loss, date, accuracy)."""
-    from ..singleview.onnx import export_onnx
+    from ..singleview.networks.onnx import export_onnx
 
     out = Path(out)
     net, ck = load_run(run)

@@ -45,7 +45,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..geometry.rotations import rotation_about_axis
+from ...geometry.rotations import rotation_about_axis
 
 ANGLE_STEP_DEG = 30.0   # candidate near-symmetry rotations: multiples of this about each axis
 NEAR_FRAC = 0.03        # kept when the TRIM_QUANTILE surface distance after the motion < this x diameter
@@ -298,7 +298,7 @@ def refine_and_rank(depth_mm, K, boxes, obj_ids, hyp, k: int, db, icp_conf, *, i
     """The depth path's choice among ranked hypotheses: ICP, scores, more hypotheses where needed.
 
     hyp (N, n, 4, 4) mm: each detection's hypotheses, best first (n >= k); the first ``k`` are
-    refined by ICP (:func:`~cosy_cli.singleview.icp.refine_with_depth` under ``icp_conf``) and
+    refined by ICP (:func:`~cosy_cli.singleview.training_free.icp.refine_with_depth` under ``icp_conf``) and
     scored by :func:`pick_score` (``image_score`` as in :func:`add_variants`, its ``src`` an index
     into n; ``tiebreak`` (N, n) or None: added to the score, e.g. a small multiple of the hypotheses'
     own scores). With ``screen`` > k the first ``screen`` hypotheses are screened instead: a short

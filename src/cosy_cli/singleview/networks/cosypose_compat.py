@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..errors import CosyError
+from ...errors import CosyError
 
 CONFIG_NAME = "config.yaml"
 CHECKPOINT_NAME = "checkpoint.pth.tar"
@@ -311,7 +311,7 @@ def export_onnx(run_dir: str | Path, out: str | Path, opset: int = OPSET, log=pr
     (B, 6, 240, 320), output ``pose`` (B, 9) raw) and write the model card ``out``.md."""
     import warnings
 
-    from ..io.atomic import atomic_path, write_text
+    from ...io.atomic import atomic_path, write_text
     from .onnx import stamp_card
 
     run = read_run(run_dir)
@@ -357,7 +357,7 @@ class OnnxCosyPoseNet(_CardNet):
     """An ONNX file written by :func:`export_onnx`, run by onnxruntime: ``net(x)`` -> (B, 9)."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int | None = None):
-        from ..onnxrt import open_session
+        from ...onnxrt import open_session
 
         self.session, self.card = open_session(path, METADATA_KEY, providers, threads,
                                                not_ours="not a CosyPose network exported by `cosy export --run`")
@@ -392,7 +392,7 @@ def model_sha1(path: str | Path) -> str:
     """sha1 of a model file, or of a CosyPose run directory (its config and checkpoint)."""
     import hashlib
 
-    from ..io.cache import file_sha1
+    from ...io.cache import file_sha1
 
     p = Path(path)
     if not p.is_dir():

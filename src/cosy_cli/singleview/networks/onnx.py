@@ -1,7 +1,7 @@
 """PoseNet to ONNX and back: export with a dynamic batch dimension, run with onnxruntime.
 
 The ONNX graph takes ``input`` (B, C, H, W) float32 in [0, 1] (normalisation is inside the graph,
-see :mod:`~cosy_cli.singleview.model`) and returns ``update`` (B, 9). The PoseNet config (kind,
+see :mod:`~cosy_cli.singleview.networks.model`) and returns ``update`` (B, 9). The PoseNet config (kind,
 backbone, n_inputs, crop_size) is stored in the model's metadata under ``cosy_posenet``.
 """
 
@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..io.atomic import atomic_path
-from ..onnxrt import open_session, stamp_card  # noqa: F401 (open_session: also imported from here)
+from ...io.atomic import atomic_path
+from ...onnxrt import open_session, stamp_card  # noqa: F401 (open_session: also imported from here)
 from .model import PoseNet, PoseNetConfig
 
 INPUT_NAME = "input"

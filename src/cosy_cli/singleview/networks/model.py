@@ -2,7 +2,7 @@
 
 An EfficientNet feature extractor (``efficientnet_pytorch``, randomly initialised: the paper
 trains from scratch too), global average pooling and one linear layer with 9 outputs
-(:mod:`~cosy_cli.singleview.pose_update` layout: 6D rotation, v_x, v_y px, v_z). The coarse and
+(:mod:`~cosy_cli.singleview.networks.pose_update` layout: 6D rotation, v_x, v_y px, v_z). The coarse and
 the refiner networks are this same class with different ``kind`` and weights.
 
 Input: (B, C, H, W) float32 in [0, 1], H x W the crop size (height, width) px, channels:

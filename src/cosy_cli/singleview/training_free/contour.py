@@ -1,6 +1,6 @@
 """Contour alignment: a training-free RGB refinement that aligns the rendered outline with the image.
 
-After verification (:mod:`~cosy_cli.singleview.verify`) each detection has hypotheses whose
+After verification (:mod:`~cosy_cli.singleview.training_free.verify`) each detection has hypotheses whose
 renderings roughly cover the object; the outline of the best is typically a few pixels off and its
 depth along the viewing ray off by a few percent. This step aligns the rendered outline with the
 image, as edge-based trackers (RAPID and its successors) and sparse region-based trackers do:
@@ -59,10 +59,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import CosyError
-from ..geometry.camera import crop_affine, crop_intrinsics
-from ..geometry.rotations import axis_angle_to_matrix
-from ..lifetime import Closing
+from ...errors import CosyError
+from ...geometry.camera import crop_affine, crop_intrinsics
+from ...geometry.rotations import axis_angle_to_matrix
+from ...lifetime import Closing
 
 
 @dataclass
@@ -409,7 +409,7 @@ class ContourRefiner(Closing):
     @property
     def renderer(self):
         if self._renderer is None:
-            from ..rendering import SceneRenderer, render_copy
+            from ...rendering import SceneRenderer, render_copy
 
             meshes = {o.obj_id: render_copy(o.mesh, self.conf.max_faces) for o in self.db}
             S = self.conf.crop
@@ -492,12 +492,12 @@ def refine_contour(refiner: ContourRefiner, verifier, obs: list, rgb: np.ndarray
                    obj_ids: np.ndarray, T: np.ndarray, prior: np.ndarray | None = None,
                    init_score: np.ndarray | None = None) -> ContourResult:
     """Contour alignment with the accept test. T: (m, 4, 4) one pose per detection, or (m, k, 4, 4)
-    k hypotheses per detection, best first (e.g. :meth:`~cosy_cli.singleview.verify.Verifier.rank`'s),
+    k hypotheses per detection, best first (e.g. :meth:`~cosy_cli.singleview.training_free.verify.Verifier.rank`'s),
     all aligned. Each detection keeps the pose of best verification score among its first
     hypothesis as given and all the iterates (``verifier``: a
-    :class:`~cosy_cli.singleview.verify.Verifier`; obs (m,) its crop observations; prior (m,) or
+    :class:`~cosy_cli.singleview.training_free.verify.Verifier`; obs (m,) its crop observations; prior (m,) or
     (m, k) the hypotheses' template scores and init_score (m,) the first hypothesis' score, as in
-    :meth:`~cosy_cli.singleview.verify.Verifier.refine`)."""
+    :meth:`~cosy_cli.singleview.training_free.verify.Verifier.refine`)."""
     import time
 
     T = np.array(T, dtype=np.float64)

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.rotations import axis_angle_to_matrix
+from ...geometry.rotations import axis_angle_to_matrix
 
 N_SURFACE = 3000  # surface samples per object
 SURFACE_SEED = 0

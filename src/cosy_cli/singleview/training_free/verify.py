@@ -1,12 +1,12 @@
 """Verification of pose hypotheses by rendering, and a training-free RGB refinement.
 
-Template retrieval (:mod:`~cosy_cli.singleview.templates`) ranks views by sparse shape gradients
+Template retrieval (:mod:`~cosy_cli.singleview.training_free.templates`) ranks views by sparse shape gradients
 only; in a cluttered, occluded real image its best template is often a wrong rotation while a
 right one is among its top few dozen. This module renders hypotheses with the mesh's own colours
 (vertex colours or texture; flat grey for bare meshes) into the detection's crop camera and
 scores them against the image, and can refine the best by a local search on the same score
 (``rgb_refine: search``; the default RGB refinement is the contour alignment of
-:mod:`~cosy_cli.singleview.contour`, which uses this score as its accept test).
+:mod:`~cosy_cli.singleview.training_free.contour`, which uses this score as its accept test).
 
 Per detection (:class:`CropObservation`, computed once): a square window around the detection
 box, grown by ``margin`` x its larger side on each side, resampled to ``crop`` x ``crop`` px; its
@@ -75,9 +75,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.camera import crop_affine, crop_intrinsics
-from ..geometry.rotations import axis_angle_to_matrix
-from ..lifetime import Closing
+from ...geometry.camera import crop_affine, crop_intrinsics
+from ...geometry.rotations import axis_angle_to_matrix
+from ...lifetime import Closing
 
 
 @dataclass
@@ -146,7 +146,7 @@ _TAN_BIN_EDGES = np.tan((np.arange(4) + 0.5) * np.pi / 8).astype(np.float32)  # 
 
 
 def _orientation_bins_of(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """orientation_bins(arctan2(gy, gx)) (:func:`~cosy_cli.singleview.templates.orientation_bins`:
+    """orientation_bins(arctan2(gy, gx)) (:func:`~cosy_cli.singleview.training_free.templates.orientation_bins`:
     bins 0..7 over 0..180 deg, bin b centred on b x 22.5 deg) by comparisons of |gy| with tan x |gx|
     instead of an arctangent (the same bins but at exact ties)."""
     a, b = np.abs(gx), np.abs(gy)
@@ -260,7 +260,7 @@ class Verifier(Closing):
 
     def _renderer_with(self, max_faces: int):
         if max_faces not in self._renderers:
-            from ..rendering import SceneRenderer, render_copy
+            from ...rendering import SceneRenderer, render_copy
 
             meshes = {}
             for o in self.db:

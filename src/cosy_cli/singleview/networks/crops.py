@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry.camera import crop_affine, crop_intrinsics, fit_box_to_aspect, project
-from ..geometry.poses import look_at, make_pose
+from ...geometry.camera import crop_affine, crop_intrinsics, fit_box_to_aspect, project
+from ...geometry.poses import look_at, make_pose
 
 DEFAULT_SCALE = 1.4  # enlargement of the projected object's extent (DeepIM / CosyPose value)
 CANONICAL_DEPTH_MM = 1000.0  # the paper's coarse input: the object 1 m from the camera

@@ -63,12 +63,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .. import __version__
-from ..conf import merge_conf
-from ..errors import CosyError
-from ..geometry.poses import invert, look_at, make_pose
-from ..io import atomic
-from ..io.cache import file_sha1
+from ... import __version__
+from ...conf import merge_conf
+from ...errors import CosyError
+from ...geometry.poses import invert, look_at, make_pose
+from ...io import atomic
+from ...io.cache import file_sha1
 
 FORMAT = "cosy-templates"
 FORMAT_VERSION = 1
@@ -309,7 +309,7 @@ def _hull_points(vertices: np.ndarray, max_points: int = 1024) -> np.ndarray:
     (farthest-point subset): their projections bound the silhouette exactly."""
     from scipy.spatial import ConvexHull, QhullError
 
-    from ..geometry.sampling import farthest_point_subset
+    from ...geometry.sampling import farthest_point_subset
 
     V = np.asarray(vertices, dtype=np.float64)
     try:
@@ -501,7 +501,7 @@ def read_manifest(directory: str | Path) -> dict | None:
 
 
 def _open_renderer(objs):
-    from ..rendering import SceneRenderer
+    from ...rendering import SceneRenderer
 
     return SceneRenderer({o.obj_id: o.mesh for o in objs}, 128, 96, znear=1.0, zfar=100_000.0)
 
@@ -537,7 +537,7 @@ def main(conf: str | Mapping | None, models_dir: str | Path, out: str | Path, ov
     changed, new or unfinished ones are (re)built, each npz and then the manifest written
     atomically (an interrupted build resumes). Other settings than those of an existing ``out``
     are refused unless ``overwrite`` (which rebuilds everything). Returns ``out``."""
-    from ..objects.database import ObjectDatabase
+    from ...objects.database import ObjectDatabase
     from tqdm import tqdm
 
     t_start = time.perf_counter()

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry.torch_ops import matrix_to_rot6d, rot6d_to_matrix
+from ...geometry.torch_ops import matrix_to_rot6d, rot6d_to_matrix
 
 N_OUTPUTS = 9
 IDENTITY_OUTPUT = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)

@@ -1,7 +1,7 @@
 """Inference with the render-and-compare networks (paper Section 3.1, Appendix A).
 
 :class:`RenderAndCompare` runs one exported PoseNet (coarse or refiner, an
-:class:`~cosy_cli.singleview.onnx.OnnxPoseNet` or any callable with the same contract) on the
+:class:`~cosy_cli.singleview.networks.onnx.OnnxPoseNet` or any callable with the same contract) on the
 detections of one image: for each current pose T^k it crops the observed image around the
 projected object (the paper's crop strategy, exactly as in training: convex-hull extent x 1.4,
 fitted to the network aspect ratio), renders the object at T^k into the same crop with the crop
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..geometry.camera import crop_intrinsics
+from ...geometry.camera import crop_intrinsics
 from .crops import DEFAULT_SCALE, boxes_from_poses, canonical_poses, crop_images
 from .model import prepare_inputs
 from .pose_update import apply_update

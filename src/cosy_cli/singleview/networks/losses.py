@@ -4,7 +4,7 @@
       + D_l(F(T^k, [v^_x, v^_y, v_z], R^), T^)      depth term ("z")
       + D_l(F(T^k, [v^_x, v^_y, v^_z], R), T^)      rotation term ("rot")
 
-where ^ marks the targets (:func:`~cosy_cli.singleview.pose_update.update_targets` of the input
+where ^ marks the targets (:func:`~cosy_cli.singleview.networks.pose_update.update_targets` of the input
 pose and the ground truth T^) and D_l is the symmetric distance of the main paper with the L1 norm:
 
     D_l(T1, T2) = min_{S in S(l)} mean_x || T1 S x - T2 x ||_1        (mm)
@@ -60,7 +60,7 @@ def disentangled_loss(out: torch.Tensor, T_in: torch.Tensor, T_gt: torch.Tensor,
                       points: torch.Tensor, symmetries: torch.Tensor) -> dict[str, torch.Tensor]:
     """The three terms and their sum, each (B,) mm (average with ``.mean()`` for training).
 
-    out (B, 9) network outputs (:mod:`~cosy_cli.singleview.pose_update` layout); T_in (B, 4, 4)
+    out (B, 9) network outputs (:mod:`~cosy_cli.singleview.networks.pose_update` layout); T_in (B, 4, 4)
     the input poses (mm); T_gt (B, 4, 4) ground truth (mm); K_crop (B, 3, 3) crop intrinsics (px);
     points (P, 3) / (B, P, 3) mm; symmetries (S, 4, 4) / (B, S, 4, 4). Returns
     {"xy", "z", "rot", "total"}. Gradients flow only through ``out``.
