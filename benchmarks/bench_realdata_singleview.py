@@ -20,7 +20,8 @@ depth, or a short ICP of 32 hypotheses and the full ICP of the best 12, picked b
 image score), ``new-top5`` (new, 5 hypotheses to ICP), ``new-noscreen`` (with depth: the first 16
 verified hypotheses to ICP, no short-ICP screen: the default before 2026-12-02), ``new-vt64``
 (64 hypotheses verified), ``new-fitonly`` (ICP pick by depth fit alone: ``image_weight 0``), ``search``, ``contour`` and ``search+contour`` (RGB: the local search,
-the contour alignment (:mod:`cosy_cli.singleview.training_free.contour`), or both). Also prints
+the contour alignment (:mod:`cosy_cli.singleview.training_free.contour`), or both); ``NAME+scorer``
+runs NAME with the learned scorer of ``--scorer FILE`` (``cosy train scorer``). Also prints
 the fraction of rotations within 15 deg (modulo symmetries), the median translation error (mm)
 and time per image.
 
@@ -193,7 +194,8 @@ def prepare_lmo_depth(src: Path, dst: Path) -> Path:
     return dst
 
 
-def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path, im_ids=None) -> None:
+def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path, im_ids=None,
+        scorer: Path | None = None) -> None:
     from cosy_cli.evaluation import evaluate_stage
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
@@ -210,16 +212,20 @@ def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path
     ds = BopDataset(root, split)
     db = ObjectDatabase.from_models_dir(root / ("models_eval" if (root / "models_eval").is_dir() else "models"))
     for name in variants:
-        conf = estimate_stage.resolve_conf("default", **VARIANTS[name])
+        base, _, learned = name.partition("+scorer")
+        conf = estimate_stage.resolve_conf("default", **VARIANTS[base])
         out = work / f"{data}_{name}.csv"
         s = estimate_stage.main(conf, root, split, out, overwrite=True, scene_ids=scene_ids, from_gt=True,
-                                templates_dir=templates_dir, log=lambda *_: None, progress=False)
+                                templates_dir=templates_dir, scorer_model=scorer if name != base else None,
+                                log=lambda *_: None, progress=False)
         sc = evaluate_stage.main(None, root, split, out, work / f"eval_{data}_{name}", overwrite=True,
                                  targets=targets, metrics=metrics, scene_ids=scene_ids, log=lambda *_: None,
                                  progress=False)
         r15, tmed = rotation_stats(out, ds, db, scene_ids or ds.scene_ids, im_ids)
         ar = sc.get("bop19_average_recall")
-        print(f"{data:5s} {name:14s} AR(MSSD,MSPD) {sc['bop19_average_recall_mssd_mspd']:.3f}  "
+        ci = sc.get("bop19_ci", {}).get("bop19_average_recall_mssd_mspd")
+        ci_txt = f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else ""
+        print(f"{data:5s} {name:14s} AR(MSSD,MSPD) {sc['bop19_average_recall_mssd_mspd']:.3f}{ci_txt}  "
               f"BOP19 AR {'n/a' if ar is None else f'{ar:.3f}'}  MSSD {sc['bop19_average_recall_mssd']:.3f}  "
               f"MSPD {sc['bop19_average_recall_mspd']:.3f}  rot<15 {r15:.3f}  median t err {tmed:.0f} mm  "
               f"{s['time_per_image_s']:.2f} s/image ({s['detections']} detections, {s['method']})", flush=True)
@@ -324,7 +330,11 @@ def main() -> None:
     ap.add_argument("--sweep", default=None,
                     help=f"lmo only: compare verification settings side by side instead ({', '.join(SWEEP)} or all)")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv")
+    ap.add_argument("--scorer", type=Path, default=None,
+                    help="a learned scorer (cosy train scorer): a variant named NAME+scorer runs NAME with it")
     args = ap.parse_args()
+    if any("+scorer" in v for v in args.variants.split(",")) and args.scorer is None:
+        ap.error("variants NAME+scorer need --scorer FILE")
     if not REALDATA.is_dir():
         print(f"skipped: {REALDATA} is absent")
         return
@@ -340,13 +350,13 @@ def main() -> None:
                 ap.error("--sweep compares the RGB chain: use it with --data lmo")
             sweep(scene_ids, list(SWEEP) if args.sweep == "all" else args.sweep.split(","), args.work / "templates_lmo")
             return
-        run(args.data, scene_ids, None, variants, args.work, args.work / "templates_lmo")
+        run(args.data, scene_ids, None, variants, args.work, args.work / "templates_lmo", scorer=args.scorer)
     else:
         frames = _parse_range(args.frames)
         targets = args.work / f"ycbv_targets_{args.frames}.json"
         targets.write_text(json.dumps([{"scene_id": 0, "im_id": i, "obj_id": o, "inst_count": 1}
                                        for i in frames for o in (8, 14, 21)]))
-        run("ycbv", [0], targets, variants, args.work, args.work / "templates_ycbv", set(frames))
+        run("ycbv", [0], targets, variants, args.work, args.work / "templates_ycbv", set(frames), scorer=args.scorer)
 
 
 if __name__ == "__main__":

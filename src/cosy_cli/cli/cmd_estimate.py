@@ -61,6 +61,9 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
                    "refinement runs].")
 @click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
               help="Templates folder (built by `cosy templates` if missing) [OUT's folder/templates].")
+@click.option("--scorer", "scorer_model", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Learned hypothesis scorer (`cosy train scorer`; ONNX): ranks and accepts the verified template "
+                   "hypotheses instead of the training-free score [none].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Crops per network call [32].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
@@ -68,7 +71,7 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
              depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, templates_dir,
-             providers, batch_size,
+             scorer_model, providers, batch_size,
              overwrite, quiet) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
@@ -88,7 +91,8 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
                                     batch_size=batch_size)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
-                        refiner_model=refiner_model, templates_dir=templates_dir, log=click.echo, progress=not quiet)
+                        refiner_model=refiner_model, templates_dir=templates_dir, scorer_model=scorer_model,
+                        log=click.echo, progress=not quiet)
 
 
 COMMANDS = [estimate]

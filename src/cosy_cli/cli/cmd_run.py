@@ -29,6 +29,9 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
               help="Models folder [the dataset's models/].")
 @click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
               help="Templates of the coarse step (built when missing) [RUN_DIR/templates].")
+@click.option("--scorer", "scorer_model", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Learned hypothesis scorer for the estimate stage (`cosy train scorer`) [none: the "
+                   "training-free verification score].")
 @click.option("--views-per-group", type=click.IntRange(min=2), default=None,
               help="Groups of N consecutive views per scene [all views of a scene in one group].")
 @click.option("--known-cameras", is_flag=True, default=None,
@@ -47,8 +50,8 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @user_errors
 def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
-        templates_dir, views_per_group, known_cameras, first, last, settings, workers, dask_scheduler, overwrite,
-        quiet) -> None:
+        templates_dir, scorer_model, views_per_group, known_cameras, first, last, settings, workers, dask_scheduler,
+        overwrite, quiet) -> None:
     """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
 
     A stage whose settings, inputs and code did not change is skipped; a changed setting reruns
@@ -65,7 +68,8 @@ def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, 
     run_stage.main(config, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                    detections=detections, coco_images=coco_images, from_gt=from_gt, model=model,
                    candidates=candidates, models_dir=models_dir,
-                   templates_dir=templates_dir, overrides=overrides, first=first, last=last,
+                   templates_dir=templates_dir, scorer_model=scorer_model, overrides=overrides, first=first,
+                   last=last,
                    workers=workers, dask_scheduler=dask_scheduler, log=click.echo, progress=not quiet)
 
 

@@ -1,6 +1,6 @@
-"""``cosy train {coarse,refiner,detector}`` and ``cosy export``: train a render-and-compare
-network or the 2D detector on on-the-fly renders of a dataset's objects, and export it to ONNX
-with a model card.
+"""``cosy train {coarse,refiner,detector,classifier,scorer}`` and ``cosy export``: train a
+render-and-compare network, the 2D detector, its box classifier or the hypothesis scorer on
+renders of a dataset's objects, and export it to ONNX with a model card.
 
 Imports stay light: the training module is imported when the command runs.
 """
@@ -55,13 +55,25 @@ def _pairs(ctx, param, value):
 
 
 @click.command("train")
-@click.argument("kind", type=click.Choice(["coarse", "refiner", "detector", "classifier"]))
-@click.option("--dataset", required=True, type=click.Path(path_type=Path),
-              help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered.")
+@click.argument("kind", type=click.Choice(["coarse", "refiner", "detector", "classifier", "scorer"]))
+@click.option("--dataset", type=click.Path(path_type=Path), default=None,
+              help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered "
+                   "(required but for the scorer, which takes --models).")
+@click.option("--models", "models_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Scorer: the models folder (obj_XXXXXX.ply in mm + models_info.json) [DATASET/models].")
+@click.option("--camera", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Scorer: BOP camera.json of the images it will score (intrinsics, image size) "
+                   "[the camera.json beside the models folder, else 640x480].")
+@click.option("--preset", type=click.Choice(["default", "long"]), default=None,
+              help="Scorer: default (about 45 min on 2 cores for 8 objects) or long (twice the data, three "
+                   "times the steps) [default].")
+@click.option("--shards", type=click.IntRange(min=1), default=None,
+              help="Scorer: training shards of 24 rendered images each [60].")
 @click.option("--split", default="train_pbr", show_default=True,
               help="Split the run is recorded for (training uses on-the-fly renders, not the split's images).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),
-              help="Run folder: checkpoint.pt, config.json, log.csv, loss.png.")
+              help="Run folder: checkpoint.pt, config.json, log.csv, loss.png. Scorer: the ONNX file to write "
+                   "(its run folder is OUT's name with .run).")
 @click.option("--backbone", type=click.Choice(BACKBONES), default=None,
               help="EfficientNet backbone [efficientnet-b0] (pose networks).")
 @click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
@@ -97,11 +109,15 @@ def _pairs(ctx, param, value):
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
-def train(kind, dataset, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
+def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
           iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite,
           quiet) -> None:
-    """Train the KIND (coarse or refiner PoseNet, or the 2D detector) on domain-randomised renders
-    of the dataset's objects.
+    """Train the KIND (coarse or refiner PoseNet, the 2D detector, its box classifier or the
+    hypothesis scorer) on domain-randomised renders of the dataset's objects.
+
+    Scorer: `cosy train scorer --models DIR --out scorer.onnx` renders scenes of the meshes, runs
+    the template matcher and the verifier on them as `cosy estimate` does, and learns to predict
+    each hypothesis' share of the BOP recall (MSSD, MSPD); use it with `cosy estimate --scorer`.
 
     Box classifier (second stage of `cosy detect`): crops of the visible boxes of rendered scenes
     (plus background crops), cross-entropy.
@@ -112,6 +128,23 @@ def train(kind, dataset, split, out, backbone, crop, input_size, init, soft_targ
     Resumable: Ctrl-C or SIGTERM (e.g. `kill PID` of a background run) saves
     a checkpoint; --resume continues (with a larger --iterations to train longer).
     """
+    if kind == "scorer":
+        if backbone is not None or crop is not None or input_size is not None or init is not None:
+            raise click.UsageError("--backbone, --crop, --input and --init are not for the scorer")
+        if models_dir is None and dataset is None:
+            raise click.UsageError("the scorer needs --models DIR (or --dataset DIR with a models/ folder)")
+        from ..training import scorer as scorer_train
+
+        conf = scorer_train.resolve_conf(preset, shards=shards, iterations=iterations, batch_size=batch_size, lr=lr,
+                                         warmup=warmup, schedule=schedule, device=device, workers=workers, seed=seed,
+                                         checkpoint_every=checkpoint_every)
+        scorer_train.main(conf, models_dir if models_dir is not None else Path(dataset) / "models", out,
+                          overwrite=overwrite, camera=camera, resume=resume, log=click.echo, progress=not quiet)
+        return
+    if dataset is None:
+        raise click.UsageError("Missing option '--dataset'.")
+    if models_dir is not None or camera is not None or preset is not None or shards is not None:
+        raise click.UsageError("--models, --camera, --preset and --shards are for the scorer")
     if kind == "classifier":
         if backbone is not None or crop is not None or input_size is not None:
             raise click.UsageError("--backbone, --crop and --input are not for the box classifier")
@@ -183,6 +216,11 @@ def export(run, out, accuracy) -> None:
                   if not (Path(run) / n).is_file()]
         raise CosyError(f"neither a cosy run folder ({' and '.join(ours)} missing; train one with `cosy train`) nor "
                         f"a CosyPose run directory ({' and '.join(theirs)} missing)", path=run)
+    if det_train.run_kind(run) == "scorer":
+        from ..training import scorer as scorer_train
+
+        scorer_train.export(run, out, log=click.echo)
+        return
     if det_train.run_kind(run) == "classifier":
         from ..detection import classifier_train
 

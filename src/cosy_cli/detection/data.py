@@ -3,7 +3,7 @@ with domain randomisation, rendered straight at the network's input size.
 
 One image (:meth:`DetectionSampleGenerator.batch`):
 
-- objects: 1..``max_objects`` instances of the dataset's objects (distinct while possible),
+- objects: ``min_objects`` (1)..``max_objects`` instances of the dataset's objects (distinct while possible),
   drawn with probabilities ``class_weights`` (default uniform: class-balanced sampling can favour
   the objects the detector finds worst); with probability ``p_pair`` the image holds one of the
   ``confusable`` pairs of look-alike objects (picked with probability proportional to its
@@ -18,10 +18,14 @@ One image (:meth:`DetectionSampleGenerator.batch`):
   "Floating": every object at a uniformly random orientation, depth 250-1200 mm, centre
   projecting anywhere in the image +-10 %, free to overlap (heavy occlusion).
 - camera: the dataset's intrinsics (``camera.json``) scaled to the input size, focal x U(0.9, 1.1);
-- appearance: random flat object colours (greys, browns, any hue), one light per group of
+- clutter (optional): up to ``max_distractors`` unlabelled ``distractors`` meshes placed like the
+  objects (random colours), hiding them as real clutter does;
+- appearance: random flat object colours (greys, browns, any hue; with ``p_mesh_colors`` > 0 an
+  instance of a coloured mesh keeps the mesh's own colours with that probability), one light per group of
   images (direction, intensity, ambient random), smooth colour noise on the objects, a random
   background (flat, gradient, blobs, coarse noise or random rectangles and discs) where nothing is drawn,
-  contrast / brightness / per-channel gain, sensor noise, blur.
+  contrast / brightness / per-channel gain (``gain_jitter``), optionally saturation, sensor noise,
+  blur (``blur``: probability, sigma range).
 
 Ground truth, as the BOP toolkit's ``bbox_visib``: the box of each instance's visible pixels;
 instances with ``visib_fract`` < ``min_visib`` (visible / silhouette pixels in the image, the
@@ -119,7 +123,9 @@ class DetectionSampleGenerator(RendererOwner):
     def __init__(self, meshes: dict, K: np.ndarray, image_size, input_size=(320, 240), seed=0, *,
                  obj_ids=None, max_objects: int = 10, p_table: float = 0.75, min_visib: float = 0.1,
                  min_pixels: int = 12, light_groups: int = 4, smooth: bool = True, class_weights=None,
-                 confusable=None, p_pair: float = 0.0, probe_points=None):
+                 confusable=None, p_pair: float = 0.0, probe_points=None, p_mesh_colors: float = 0.0,
+                 distractors: dict | None = None, max_distractors: int = 0, gain_jitter: float = 0.1,
+                 saturation=(1.0, 1.0), blur=(0.25, 0.3, 1.0), min_objects: int = 1):
         self.meshes = {int(k): v for k, v in meshes.items()}
         self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
         self.K = np.asarray(K, dtype=np.float64)
@@ -128,6 +134,7 @@ class DetectionSampleGenerator(RendererOwner):
         self.K_input = scaled_intrinsics(self.K, self.image_size, self.input_size)
         self.rng = np.random.default_rng(seed)
         self.max_objects = int(max_objects)
+        self.min_objects = max(1, min(int(min_objects), self.max_objects))
         self.p_table = float(p_table)
         self.min_visib = float(min_visib)
         self.min_pixels = int(min_pixels)
@@ -136,8 +143,19 @@ class DetectionSampleGenerator(RendererOwner):
         self.class_p = normalised_weights(class_weights, self.obj_ids)
         self.pairs, self.pair_p = pair_table(confusable, self.obj_ids)
         self.p_pair = float(p_pair) if len(self.pairs) else 0.0
-        self.rest = {int(o): _RestPoses(self.meshes[int(o)]) for o in self.obj_ids}
-        self.radius = {int(o): float(np.linalg.norm(self.rest[int(o)].hull, axis=1).max()) for o in self.obj_ids}
+        # distractors: unlabelled meshes ({id: mesh}, ids apart from the objects') placed among them as clutter
+        self.distractors = {int(k): v for k, v in (distractors or {}).items()}
+        self.distractor_ids = np.array(sorted(self.distractors), np.int64)
+        self.max_distractors = int(max_distractors) if len(self.distractor_ids) else 0
+        self.gain_jitter = float(gain_jitter)  # per-channel gain U(1 -+ this) (white balance)
+        self.saturation = (float(saturation[0]), float(saturation[1]))  # (1, 1): no saturation change
+        self.blur = tuple(float(v) for v in blur)  # (probability, sigma range) of a Gaussian blur
+        every = {**self.meshes, **self.distractors}
+        self.rest = {int(o): _RestPoses(every[int(o)]) for o in list(self.obj_ids) + list(self.distractor_ids)}
+        self.radius = {int(o): float(np.linalg.norm(r.hull, axis=1).max()) for o, r in self.rest.items()}
+        # instances of meshes with their own colours keep them with this probability (the scorer's data)
+        self.p_mesh_colors = float(p_mesh_colors)
+        self.coloured = {int(o): bool(getattr(self.meshes[int(o)].visual, "defined", False)) for o in self.obj_ids}
         self.probe_points = {int(o): [np.asarray(p, np.float64).reshape(-1, 3) for p in sets]
                              for o, sets in (probe_points or {}).items()}
         self._renderer = None
@@ -150,6 +168,7 @@ class DetectionSampleGenerator(RendererOwner):
         from ..synth.scenes import table_mesh
 
         meshes = dict(self.meshes)
+        meshes.update(self.distractors)
         meshes[TABLE_ID] = table_mesh()
         w, h = self.input_size
         return SceneRenderer(meshes, w, h, znear=10.0, zfar=20_000.0, smooth=self.smooth)
@@ -244,7 +263,8 @@ class DetectionSampleGenerator(RendererOwner):
     def batch(self, B: int) -> dict:
         """B images: {"images": (B, H, W, 3) uint8, "boxes": [ (n_b, 4) xyxy input px ],
         "labels": [ (n_b,) class indices ], "ignore_boxes", "ignore_labels": the same for
-        barely visible instances, "visib_fract": [ (n_b,) ] of the kept instances}."""
+        barely visible instances, "visib_fract": [ (n_b,) ], "T_cam_obj": [ (n_b, 4, 4) mm ] of the
+        kept instances, "K": (B, 3, 3) the images' intrinsics (input px)}."""
         rng = self.rng
         w, h = self.input_size
         ids_all, T_all, tile_all, Ks, is_table = [], [], [], [], []
@@ -255,7 +275,10 @@ class DetectionSampleGenerator(RendererOwner):
             K[1, 1] *= f
             K[0, 1] *= f
             Ks.append(K)
-            ids, pair = self._choose(int(rng.integers(1, self.max_objects + 1)))
+            ids, pair = self._choose(int(rng.integers(self.min_objects, self.max_objects + 1)))
+            if self.max_distractors:  # drawn only then: the detector's random stream stays as it was
+                nd = int(rng.integers(0, self.max_distractors + 1))
+                ids = np.concatenate([ids, rng.choice(self.distractor_ids, nd)]).astype(np.int64)
             if rng.random() < self.p_table:
                 T, T_cam_world, ids = self._table_scene(ids, pair)
                 if rng.random() < 0.85:
@@ -266,7 +289,7 @@ class DetectionSampleGenerator(RendererOwner):
             ids_all.append(ids)
             T_all.append(T)
             tile_all.append(np.full(len(ids), b))
-            is_table.append(ids == TABLE_ID)
+            is_table.append((ids == TABLE_ID) | np.isin(ids, self.distractor_ids))  # unlabelled: table, clutter
         ids = np.concatenate(ids_all).astype(np.int64)
         T = np.concatenate(T_all)
         tiles = np.concatenate(tile_all)
@@ -277,6 +300,10 @@ class DetectionSampleGenerator(RendererOwner):
         if is_table.any():  # table colours as cosy synth draws them, a little wider
             k = int(is_table.sum())
             colors[is_table] = hsv_to_rgb(rng.uniform(0, 1, k), rng.uniform(0, 0.6, k), rng.uniform(0.1, 0.95, k))
+        if self.p_mesh_colors > 0:  # drawn only then: the detector's random stream stays as it was
+            own = (rng.random(n) < self.p_mesh_colors) & ~is_table
+            own &= np.array([self.coloured.get(int(o), False) for o in ids], bool)
+            colors[own] = np.nan
 
         r = self.renderer
         probes = bool(self.probe_points)
@@ -300,7 +327,8 @@ class DetectionSampleGenerator(RendererOwner):
         full_px = np.zeros(n)
         full_px[objs] = sil.reshape(len(objs), -1).sum(1) * (w * h) / (hw * hh)
 
-        out = {"boxes": [], "labels": [], "ignore_boxes": [], "ignore_labels": [], "visib_fract": []}
+        out = {"boxes": [], "labels": [], "ignore_boxes": [], "ignore_labels": [], "visib_fract": [], "T_cam_obj": [],
+               "K": Ks}
         if probes:
             out["probe_px"] = []
         class_of = {int(o): k for k, o in enumerate(self.obj_ids)}
@@ -331,6 +359,7 @@ class DetectionSampleGenerator(RendererOwner):
             out["ignore_boxes"].append(np.array(ign, np.float64).reshape(-1, 4))
             out["ignore_labels"].append(np.array(ign_l, np.int64))
             out["visib_fract"].append(np.array(vis))
+            out["T_cam_obj"].append(T[np.array(kept, np.int64)].reshape(len(kept), 4, 4))
             if probes:
                 out["probe_px"].append(probe_px[np.array(kept, np.int64)].reshape(len(kept), n_sets))
         out["images"] = self._compose(rgb, inst >= 0)
@@ -382,12 +411,15 @@ class DetectionSampleGenerator(RendererOwner):
                     std = float(rng.uniform(0, 12))
                 paste_background(img, bg, foreground[b], noise, std)
             contrast, bright = rng.uniform(0.7, 1.3), rng.normal(0, 12)
-            gain = rng.uniform(0.9, 1.1, 3)
+            gain = rng.uniform(1 - self.gain_jitter, 1 + self.gain_jitter, 3)
             img = photometric(img, contrast, gain, bright)
+            if self.saturation != (1.0, 1.0):  # drawn only then (the detector's stream stays as it was)
+                grey = img.mean(2, keepdims=True)
+                img = grey + np.float32(rng.uniform(*self.saturation)) * (img - grey)
             if rng.random() < 0.5:
                 cv2.scaleAdd(self._noise(h, w), float(rng.uniform(1, 6)), img, dst=img)
-            if rng.random() < 0.25:
-                img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, 1.0)))
+            if rng.random() < self.blur[0]:
+                img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(self.blur[1], self.blur[2])))
             out[b] = np.clip(img + 0.5, 0, 255).astype(np.uint8)
         return out
 

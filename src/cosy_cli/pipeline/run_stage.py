@@ -185,11 +185,15 @@ def run_scene(task: dict) -> dict:
             from ..singleview import estimate_stage
 
             need("detections.json", "detect")
-            unit("estimate", confs["estimate"],
-                 {"detections": _digest_of(dets), "models": _digest_of(Path(task["models_dir"]) / "models_info.json")},
+            est_inputs = {"detections": _digest_of(dets),
+                          "models": _digest_of(Path(task["models_dir"]) / "models_info.json")}
+            if task.get("scorer_model"):  # recorded only when used: earlier runs stay up to date
+                est_inputs["scorer"] = _digest_of(task["scorer_model"])
+            unit("estimate", confs["estimate"], est_inputs,
                  ["candidates.csv", "candidates.json", "candidates.timing.csv"], lambda: estimate_stage.main(
                      confs["estimate"], dataset, split, cands, overwrite=True, scene_ids=[sid], detections=dets,
-                     models_dir=task["models_dir"], templates_dir=task["templates_dir"], log=log, progress=False))
+                     models_dir=task["models_dir"], templates_dir=task["templates_dir"],
+                     scorer_model=task.get("scorer_model"), log=log, progress=False))
     if wanted("match"):
         from ..multiview import match_stage
 
@@ -309,7 +313,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
          scene_ids: list[int] | None = None, detections: str | Path | None = None, coco_images=None,
          from_gt: bool = False, model: str | Path | None = None, candidates: str | Path | None = None,
          models_dir: str | Path | None = None, templates_dir: str | Path | None = None,
-         overrides: dict | None = None, first: str = "detect",
+         scorer_model: str | Path | None = None, overrides: dict | None = None, first: str = "detect",
          last: str = "viz", workers: int = 1, dask_scheduler: str | None = None, log: Callable[[str], None] = print,
          progress: bool = True) -> dict:
     """Run the pipeline into the run folder ``out``; returns the manifest (also ``out/run.json``).
@@ -319,7 +323,8 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     at match), else ``model`` (a detector ONNX, default the shipped one). ``first``/``last``:
     the stages to run (earlier stages' outputs are used as they are). ``overwrite`` reruns
     every stage. ``overrides``: per-stage settings over the named ``config``. ``templates_dir``:
-    templates of the coarse step, built when missing (default ``out/templates``).
+    templates of the coarse step, built when missing (default ``out/templates``). ``scorer_model``:
+    a learned hypothesis scorer for the estimate stage (``cosy train scorer``).
     """
     t_start = time.perf_counter()
     if sum(x is not None for x in (detections, candidates, model)) + bool(from_gt) > 1:
@@ -338,7 +343,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     ds = BopDataset(dataset, split)
     dataset = Path(dataset).resolve()
     scene_ids = ds.select_scenes(scene_ids)
-    for f in (detections, candidates, model, coco_images):
+    for f in (detections, candidates, model, coco_images, scorer_model):
         if f is not None and not Path(f).is_file():
             raise CosyError("file not found", path=f)
     confs = resolve_confs(config, **(overrides or {}))
@@ -381,6 +386,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
               "source": source, "source_file": source_file,
               "coco_images": None if coco_images is None else str(Path(coco_images).resolve()),
               "models_dir": str(models_dir), "templates_dir": str(templates_dir), "first": first,
+              "scorer_model": None if scorer_model is None else str(Path(scorer_model).resolve()),
               "last": min(last, "refine", key=STAGES.index), "force": sorted(force)}
              for s in scene_ids]
     stage_times: dict[str, dict] = {}

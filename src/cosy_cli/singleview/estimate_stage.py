@@ -192,10 +192,15 @@ class Estimator:
     TemplateSet (when coarse is "templates")."""
 
     def __init__(self, conf: dict, db, *, coarse_model: Path | None = None, refiner_model: Path | None = None,
-                 templates=None):
+                 templates=None, scorer_model: Path | None = None):
         self.conf = conf
         self.db = db
         self.templates = templates
+        self.scorer = None
+        if scorer_model is not None:
+            from .scorer.runtime import OnnxScorer
+
+            self.scorer = OnnxScorer(scorer_model, provider_names(conf["providers"]))
         self._renderer = None
         self._verifier = None
         self._contour = None
@@ -233,7 +238,7 @@ class Estimator:
         if self._verifier is None:
             from .training_free.verify import Verifier
 
-            self._verifier = Verifier(self.db)
+            self._verifier = Verifier(self.db, scorer=self.scorer)
         return self._verifier
 
     @property
@@ -376,7 +381,8 @@ def decide(conf: dict, *, coarse_model: Path | None, refiner_model: Path | None,
 def describe(conf: dict) -> str:
     parts = [f"coarse {conf['coarse']}" + (f" (top {conf['top_k']})" if conf["coarse"] == "templates" else "")]
     if conf["coarse"] == "templates" and conf.get("verify_top", 0) > 0:
-        parts[0] += f", {conf['verify_top']} verified by rendering"
+        parts[0] += f", {conf['verify_top']} verified by rendering" + (" (learned scorer)" if conf.get("scorer")
+                                                                       else "")
     if conf.get("rgb_refine") in ("search", "contour", "search+contour"):
         parts.append({"search": "RGB refinement", "contour": "contour alignment",
                       "search+contour": "RGB refinement + contour alignment"}[conf["rgb_refine"]])
@@ -458,8 +464,9 @@ def output_paths(out: Path) -> tuple[Path, Path]:
     return out.with_suffix(".timing.csv"), out.with_suffix(".json")
 
 
-def _inputs_doc(ds: BopDataset, split: str, scene_ids, detections, models_dir: Path, coarse, refiner) -> dict:
-    return {
+def _inputs_doc(ds: BopDataset, split: str, scene_ids, detections, models_dir: Path, coarse, refiner,
+                scorer=None) -> dict:
+    doc = {
         "dataset": str(Path(ds.root).resolve()), "split": split, "scene_ids": [int(s) for s in scene_ids],
         "detections": "gt" if detections is None else {"path": str(Path(detections).resolve()),
                                                        "sha1": file_sha1(detections)},
@@ -467,19 +474,26 @@ def _inputs_doc(ds: BopDataset, split: str, scene_ids, detections, models_dir: P
         "coarse_model": None if coarse is None else {"path": str(coarse), "sha1": model_sha1(coarse)},
         "refiner_model": None if refiner is None else {"path": str(refiner), "sha1": model_sha1(refiner)},
     }
+    if scorer is not None:  # recorded only when used: outputs of earlier versions stay up to date
+        doc["scorer_model"] = {"path": str(Path(scorer).resolve()), "sha1": file_sha1(scorer)}
+    return doc
 
 
 def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False, *,
          scene_ids: list[int] | None = None, detections: str | Path | None = None, from_gt: bool = False,
          models_dir: str | Path | None = None, coarse_model: str | Path | None = None,
          refiner_model: str | Path | None = None, templates_dir: str | Path | None = None,
-         split_type: str | None = None, log=print, progress: bool = True, keep_steps: bool = False) -> dict | None:
+         split_type: str | None = None, scorer_model: str | Path | None = None, log=print, progress: bool = True,
+         keep_steps: bool = False) -> dict | None:
     """Run ``cosy estimate``; returns the summary (None when ``out`` is up to date and skipped).
 
     detections: a BOP detections JSON, or ``from_gt`` for the visible GT boxes. models_dir: the
     objects (default the dataset's models/). coarse_model / refiner_model: ONNX files (default the
     shipped ones). templates_dir: where templates are built/reused (default ``<out dir>/templates``).
-    keep_steps: also return the poses after every step (``summary["steps"]``, for benchmarks).
+    scorer_model: a learned hypothesis scorer (``cosy train scorer``; ONNX) that replaces the
+    training-free verification score (used where hypotheses are verified: templates with
+    ``verify_top`` > 0). keep_steps: also return the poses after every step (``summary["steps"]``,
+    for benchmarks).
     """
     from tqdm import tqdm
 
@@ -510,7 +524,18 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     ds.check_image_files(scene_ids, depth=run_conf["depth_refine"] == "icp")  # sizes vs camera/cam_K, from headers
     used_coarse = coarse_model if run_conf["coarse"] == "network" else None
     used_refiner = refiner_model if run_conf["refiner"] == "network" else None
-    inputs = _inputs_doc(ds, split, scene_ids, detections, models_dir, used_coarse, used_refiner)
+    used_scorer = None
+    if scorer_model is not None:
+        scorer_model = Path(scorer_model)
+        if not scorer_model.is_file():
+            raise CosyError("scorer model not found (train one with `cosy train scorer`)", path=scorer_model)
+        if run_conf["coarse"] == "templates" and run_conf.get("verify_top", 0) > 0:
+            used_scorer = scorer_model
+            run_conf["scorer"] = True
+        else:
+            log("estimate: warning: --scorer is used only where template hypotheses are verified by rendering "
+                "(coarse templates, verify_top > 0): ignored")
+    inputs = _inputs_doc(ds, split, scene_ids, detections, models_dir, used_coarse, used_refiner, used_scorer)
 
     if not keep_steps and reuse_existing_file(out, doc_path, "estimate", overwrite, run_conf, inputs, log):
         return None
@@ -534,7 +559,12 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         templates = tpl.TemplateSet.load(tdir)
     log(f"estimate: {describe(run_conf)}; {len(dets)} detections in {len(scene_ids)} scene(s)")
 
-    est = Estimator(run_conf, db, coarse_model=used_coarse, refiner_model=used_refiner, templates=templates)
+    est = Estimator(run_conf, db, coarse_model=used_coarse, refiner_model=used_refiner, templates=templates,
+                    scorer_model=used_scorer)
+    unseen = est.scorer.unseen(db.obj_ids) if est.scorer is not None else []
+    if unseen:
+        log(f"estimate: note: the scorer was not trained on obj_id {', '.join(map(str, unseen))} (it was on "
+            f"{', '.join(map(str, est.scorer.obj_ids))}); it still compares their renders with the image")
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
     groups = dets.groupby(["scene_id", "im_id"]).indices
     rows_T, rows_meta, timing, steps, rows_alt = [], [], [], {}, []

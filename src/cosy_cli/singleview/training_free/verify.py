@@ -251,9 +251,15 @@ class Verifier(Closing):
 
     db: ObjectDatabase; conf: VerifyConf. Use as a context manager or call close()."""
 
-    def __init__(self, db, conf: VerifyConf | None = None):
+    def __init__(self, db, conf: VerifyConf | None = None, scorer=None):
         self.db = db
         self.conf = conf or VerifyConf()
+        # a learned scorer (:class:`~cosy_cli.singleview.scorer.runtime.OnnxScorer`): its prediction
+        # replaces the weighted sum of the terms (see :mod:`cosy_cli.singleview.scorer`)
+        self.scorer = scorer
+        if scorer is not None and (scorer.crop != self.conf.crop or scorer.margin != self.conf.margin):
+            raise ValueError(f"the scorer was trained on {scorer.crop} px crops with margin {scorer.margin}, "
+                             f"verification uses {self.conf.crop} px, margin {self.conf.margin}")
         self._renderers: dict[int, object] = {}
         self._coloured: dict[int, bool] = {}
         self._coarse: dict[int, bool] = {}  # obj_id -> rank() renders a coarser copy of it
@@ -289,11 +295,17 @@ class Verifier(Closing):
     # ------------------------------------------------------------------ scoring
 
     def score(self, obs: list[CropObservation], det: np.ndarray, obj_ids: np.ndarray, T: np.ndarray,
-              prior: np.ndarray | None = None, terms: bool = False, max_faces: int | None = None):
+              prior: np.ndarray | None = None, terms: bool = False, max_faces: int | None = None,
+              inputs: bool = False):
         """Scores (n,) of hypotheses T (n, 4, 4) of detections ``det`` (n,) indices into ``obs``,
         objects obj_ids (n,); ``prior`` (n,) in [0, 1]: the hypotheses' own scores (template
         matching), weighted by ``w_prior``. With ``terms``, also a dict of the per-term (n,) arrays.
         max_faces: render copies of at most this many faces (default ``conf.max_faces``).
+        With a learned ``scorer``, the scores are its predictions (the terms still returned are
+        the training-free ones, "total" their weighted sum). ``inputs``: instead of the scores, a
+        dict of the scorer's raw inputs (renders "rgba" (n, S, S, 4) uint8, "gain" (n,), "terms"
+        (n, T), "ridx" (n,) the observation of each, "udet" the observations used, "total" the
+        training-free scores), what training stores.
 
         One render of all n hypotheses; the terms are computed on the rendered pixels only (edge
         pixels, silhouette pixels), gathered as flat index arrays."""
@@ -365,8 +377,8 @@ class Verifier(Closing):
         Rv *= np.float32(1.0 / 255.0)
         num = sums(I[0] * Rv[0] + I[1] * Rv[1] + I[2] * Rv[2])
         den = sums(Rv[0] * Rv[0] + Rv[1] * Rv[1] + Rv[2] * Rv[2])
-        gain = np.clip(num / np.maximum(den, 1e-9), 0.3, 3.0).astype(np.float32).take(mb)
-        Rv *= gain
+        gain_h = np.clip(num / np.maximum(den, 1e-9), 0.3, 3.0).astype(np.float32)
+        Rv *= gain_h.take(mb)
         I -= Rv
         I *= I
         diff = np.sqrt(I[0] + I[1] + I[2])
@@ -403,8 +415,20 @@ class Verifier(Closing):
         total = (c.w_edge * e_score + c.w_orient * o_score + wc * c_score + c.w_region * r_score
                  + c.w_box * b_score + wp * pr) / (c.w_edge + c.w_orient + wc + c.w_region + c.w_box + wp)
         total = np.where(has, total, 0.0)
+        term_arrays = {"orient": o_score, "edge": e_score, "colour": c_score, "region": r_score, "box": b_score}
+        if self.scorer is not None or inputs:
+            from ..scorer.features import assemble, term_vector
+
+            tv = term_vector(term_arrays, prior, coloured, total, area / np.maximum(barea, 1e-9))
+            if inputs:
+                return {"rgba": out.rgba, "gain": gain_h, "terms": tv, "ridx": ridx, "udet": udet, "total": total}
+            image = assemble(np.stack([obs[d].rgb for d in udet]), inb, nb, ridx, out.rgba, gain_h)
+            learned = np.where(has, self.scorer(image, tv), 0.0)
+            if terms:
+                return learned, dict(term_arrays, total=total)
+            return learned
         if terms:
-            return total, {"orient": o_score, "edge": e_score, "colour": c_score, "region": r_score, "box": b_score}
+            return total, term_arrays
         return total
 
     def rank(self, rgb: np.ndarray, K: np.ndarray, boxes: np.ndarray, obj_ids: np.ndarray,

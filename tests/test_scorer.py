@@ -1,0 +1,152 @@
+"""The learned hypothesis scorer: its target, its data, `cosy train scorer`, `cosy estimate --scorer`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cosy_cli.cli.main import cli
+from cosy_cli.evaluation import pose_error
+from cosy_cli.geometry.rotations import axis_angle_to_matrix
+from cosy_cli.training.scorer_target import ar_contribution, max_errors
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+SCENE = SAMPLES / "test" / "000001"
+TINY = {"shards": 1, "val_shards": 1, "images_per_shard": 2, "iterations": 12, "checkpoint_every": 6, "log_every": 3,
+        "workers": 0, "batch_size": 4, "warmup": 2, "verify_top": 12, "keep_best": 4, "keep_random": 2,
+        "perturbed": 4}
+
+
+def _run(args):
+    return CliRunner().invoke(cli, args, catch_exceptions=False)
+
+
+def test_target_errors_match_the_metrics_and_the_thresholds():
+    rng = np.random.default_rng(3)
+    P = rng.normal(size=(150, 3)) * 40
+    S = np.stack([np.eye(4), np.diag([-1.0, -1.0, 1.0, 1.0])])  # a half-turn symmetry about z
+    Tg = np.eye(4)
+    Tg[:3, 3] = [30, -20, 700]
+    Te = np.repeat(Tg[None], 6, 0)
+    Te[:, :3, :3] = axis_angle_to_matrix(rng.normal(size=(6, 3)) * 0.15)
+    Te[:, :3, 3] += rng.normal(size=(6, 3)) * 5
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    e1, e2 = max_errors(Te, Tg, K, P, S)
+    np.testing.assert_allclose(e1, pose_error.mssd(Te, Tg, P, S), rtol=1e-9)
+    np.testing.assert_allclose(e2, pose_error.mspd(Te, Tg, K, P, S), rtol=1e-9)
+    # the symmetric copy of the ground truth is exact
+    Ts = Tg @ S[1]
+    a, b = max_errors(Ts[None], Tg, K, P, S)
+    assert a[0] < 1e-9 and b[0] < 1e-6
+    # thresholds: MSSD 0.05..0.5 x diameter, MSPD 5..50 px x width / 640
+    v = ar_contribution([4.0, 12.0, 60.0], [4.0, 12.0, 60.0], 100.0, 640)
+    np.testing.assert_allclose(v, [1.0, 0.5 * (0.8 + 0.8), 0.0])
+    assert ar_contribution([0.0], [15.0], 100.0, 1280)[0] == pytest.approx(0.5 * (1.0 + 0.9))  # 10..100 px
+
+
+@pytest.fixture(scope="module")
+def tiny_scorer(tmp_path_factory):
+    from cosy_cli.training import scorer
+
+    out = tmp_path_factory.mktemp("scorer") / "scorer.onnx"
+    r = scorer.main(dict(TINY), SAMPLES / "models", out, log=lambda *_: None, progress=False)
+    return out, r
+
+
+def test_train_scorer_writes_data_a_run_and_an_onnx(tiny_scorer):
+    from cosy_cli.singleview.scorer.runtime import OnnxScorer
+    from cosy_cli.training.scorer_data import load_shards
+
+    out, r = tiny_scorer
+    run = Path(r["run"])
+    assert out.is_file() and (run / "checkpoint.pt").is_file() and (run / "log.csv").is_file()
+    d = load_shards(run / "shards", [0])
+    n = len(d["target"])
+    assert n == r["hypotheses"] > 0 and d["rgba"].shape == (n, 64, 64, 4) and d["terms"].shape == (n, 8)
+    assert d["det"].max() < len(d["obs_rgb"]) and set(np.unique(d["perturbed"])) <= {0, 1}
+    assert 0 <= d["target"].min() and d["target"].max() <= 1
+    # the poses near the ground truth earn more recall than the template matcher's hypotheses
+    assert d["target"][d["perturbed"] == 1].mean() > d["target"][d["perturbed"] == 0].mean()
+    sc = OnnxScorer(out)
+    assert sc.crop == 64 and sc.obj_ids == list(range(1, 9)) and sc.unseen([1, 42]) == [42]
+    assert sc.card["validation"]["detections"] > 0
+
+
+def test_the_verifier_feeds_the_scorer_what_training_stored(tiny_scorer):
+    """Inference inputs are the training inputs: score(inputs=True) assembled and run through the
+    exported network gives exactly the verifier's learned scores."""
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.objects import ObjectDatabase
+    from cosy_cli.singleview.scorer.features import assemble
+    from cosy_cli.singleview.scorer.runtime import OnnxScorer
+    from cosy_cli.singleview.training_free.verify import Verifier, observe
+
+    out, _ = tiny_scorer
+    ds = BopDataset(SAMPLES, "test")
+    gt = ds.scene_gt(1)[0]
+    rgb = ds.read_rgb(1, 0)
+    K = ds.scene_camera(1)[0].K
+    db = ObjectDatabase.from_models_dir(SAMPLES / "models")
+    T = np.stack([g.T_cam_obj for g in gt[:3]])
+    obj = np.array([g.obj_id for g in gt[:3]])
+    info = ds.scene_gt_info(1)[0][:3]
+    boxes = np.array([[b.bbox_visib[0], b.bbox_visib[1], b.bbox_visib[0] + b.bbox_visib[2],
+                       b.bbox_visib[1] + b.bbox_visib[3]] for b in info], float)
+    scorer = OnnxScorer(out)
+    with Verifier(db, scorer=scorer) as v:
+        obs = [observe(rgb, K, b, v.conf) for b in boxes]
+        det = np.repeat(np.arange(3), 2)
+        Th = np.repeat(T, 2, 0)
+        Th[1::2, :3, 3] += [8.0, 0, 0]
+        learned, terms = v.score(obs, det, obj[det], Th, terms=True)
+        raw = v.score(obs, det, obj[det], Th, inputs=True)
+    x = assemble(np.stack([obs[d].rgb for d in raw["udet"]]), np.stack([obs[d].in_box for d in raw["udet"]]),
+                 np.stack([obs[d].not_bg for d in raw["udet"]]), raw["ridx"], raw["rgba"], raw["gain"])
+    np.testing.assert_allclose(learned, scorer(x, raw["terms"]), rtol=1e-5)
+    assert np.all((learned > 0) & (learned < 1)) and "total" in terms
+    np.testing.assert_allclose(terms["total"], raw["total"])
+
+
+def test_estimate_and_run_take_a_scorer(tmp_path, tiny_scorer):
+    out_scorer, _ = tiny_scorer
+    tdir = Path(tiny_scorer[1]["run"]) / "templates"
+    out = tmp_path / "c.csv"
+    args = ["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+            "--depth-refine", "none", "--verify-top", "8", "--top-k", "2", "--templates-dir", str(tdir), "--quiet"]
+    r = _run(args + ["--scorer", str(out_scorer), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "learned scorer" in r.output
+    doc = json.loads((tmp_path / "c.json").read_text())
+    assert doc["conf"]["scorer"] is True and doc["inputs"]["scorer_model"]["sha1"]
+    from cosy_cli.io import bop
+
+    assert len(bop.read_results(out)) == len(bop.read_results(out).table) > 0
+    # a file that is not a scorer, and one that does not exist: exit 2, the file named
+    r = _run(args + ["--scorer", str(Path(__file__).resolve().parent.parent / "src/cosy_cli/assets/detector.onnx"),
+                     "--out", str(tmp_path / "d.csv"), "--overwrite"])
+    assert r.exit_code == 2 and "detector.onnx" in r.output and "cosy train scorer" in r.output
+    r = _run(args + ["--scorer", str(tmp_path / "none.onnx"), "--out", str(tmp_path / "e.csv")])
+    assert r.exit_code == 2 and "none.onnx" in r.output
+    # cosy run passes it on to the estimate stage
+    r = _run(["run", "--scene", str(SCENE), "--from-gt", "--out", str(tmp_path / "run"), "--to", "estimate",
+              "--templates-dir", str(tdir), "--scorer", str(out_scorer), "--set", "estimate.verify_top=8",
+              "--set", "estimate.top_k=2", "--set", "estimate.coarse=templates", "--set", "estimate.refiner=none",
+              "--set", "estimate.depth_refine=none", "--quiet"])
+    assert r.exit_code == 0, r.output
+    cand = json.loads((tmp_path / "run" / "scenes" / "000001" / "candidates.json").read_text())
+    assert cand["inputs"]["scorer_model"]["sha1"] == doc["inputs"]["scorer_model"]["sha1"]
+
+
+def test_train_scorer_command_line_errors(tmp_path):
+    r = _run(["train", "scorer", "--out", str(tmp_path / "s.onnx")])
+    assert r.exit_code == 2 and "--models" in r.output
+    r = _run(["train", "scorer", "--models", str(tmp_path), "--out", str(tmp_path / "s.onnx")])
+    assert r.exit_code == 2 and "models_info.json" in r.output
+    r = _run(["train", "scorer", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "s.pt")])
+    assert r.exit_code == 2 and ".onnx" in r.output
+    r = _run(["train", "refiner", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "r")])
+    assert r.exit_code == 2 and "--dataset" in r.output
