@@ -120,12 +120,13 @@ def validate(net, data: dict, batch: int = 512) -> dict:
     n = len(data["target"])
     pred = np.empty(n)
     was = net.training
+    dev = next(net.parameters()).device
     net.eval()
     with torch.no_grad():
         for i in range(0, n, batch):
             idx = np.arange(i, min(n, i + batch))
             x, t = b.inputs(idx)
-            pred[idx] = net(torch.from_numpy(x), torch.from_numpy(t)).numpy()
+            pred[idx] = net(torch.from_numpy(x).to(dev), torch.from_numpy(t).to(dev)).cpu().numpy()
     net.train(was)
     tmpl = data["perturbed"] == 0
     det = data["det"][tmpl]
@@ -292,7 +293,7 @@ def _export(net, out: Path, record: dict, obj_ids, n_shards: int, n_hyp: int, va
             "models_info_sha1": record["models_info_sha1"], "iterations": record["iterations"], "shards": n_shards,
             "images": n_shards * record["images_per_shard"], "hypotheses": n_hyp, "seed": record["seed"],
             "validation": validation}
-    export_onnx(net, out, card)
+    export_onnx(net.cpu(), out, card)
 
 
 def export(run: str | Path, out: str | Path, log: Callable[[str], None] = print) -> Path:
