@@ -230,6 +230,7 @@ def session(value: int = NORMAL):
 # ------------------------------------------------------------------------------------------
 PLAIN_STEP = 0.25  # plain progress lines: at most one per quarter of the work...
 PLAIN_MIN_S = 30.0  # ...and at most one per this many seconds (whichever is rarer)
+_clock = time.monotonic
 
 
 def _isatty(stream) -> bool:
@@ -252,7 +253,7 @@ class PlainProgress:
             total = len(iterable)
         self.total, self.n, self.desc, self.unit = total, int(initial), desc, unit
         self.stream = stream
-        self.t0 = self.last = time.monotonic()
+        self.t0 = self.last = _clock()
         self.printed = 0
         self.next_fraction = PLAIN_STEP
         self.closed = False
@@ -274,7 +275,7 @@ class PlainProgress:
 
     def update(self, n: int = 1) -> None:
         self.n += n
-        now = time.monotonic()
+        now = _clock()
         if now - self.last < PLAIN_MIN_S:
             return
         if self.total:
@@ -302,7 +303,7 @@ class PlainProgress:
         if self.closed:
             return
         self.closed = True
-        now = time.monotonic()
+        now = _clock()
         if self.printed or now - self.t0 >= PLAIN_MIN_S:
             self._emit(now)
 
