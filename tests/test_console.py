@@ -120,7 +120,7 @@ def test_a_file_read_again_is_counted_once(capsys):
         tolerate(f"{rows} of 10 R rotations ...", path=path, group="split", what="R rotations off", fix="repaired",
                  rows=rows, total=10, worst=worst, worst_at="row 1")
 
-    with console.session(console.NORMAL):
+    with console.command_output(console.NORMAL):
         rounding("split/000001/scene_gt.json", 2, 0.01)
         rounding("split/000002/scene_gt.json", 3, 0.02)
         rounding("split/000001/scene_gt.json", 2, 0.01)  # a later stage reads the same file
@@ -142,7 +142,7 @@ def test_a_file_read_again_is_counted_once(capsys):
 def test_quiet_keeps_only_warnings_to_act_on(capsys, monkeypatch):
     clock = itertools.count(0.0, 20.0)
     monkeypatch.setattr(console, "_clock", lambda: next(clock))
-    with console.session(console.QUIET):
+    with console.command_output(console.QUIET):
         for _ in console.progress(range(40), desc="estimate", unit="image"):
             pass
         tolerate("x", path="s/000001/f.json", group="s", what="w", fix="f", rows=1, total=1, worst=1.0)
@@ -156,7 +156,7 @@ def test_quiet_keeps_only_warnings_to_act_on(capsys, monkeypatch):
 def test_progress_in_a_log_is_a_few_plain_lines(capsys, monkeypatch):
     clock = itertools.count(0.0, 7.0)  # every reading of the clock: 7 s later
     monkeypatch.setattr(console, "_clock", lambda: next(clock))
-    with console.session(console.NORMAL):
+    with console.command_output(console.NORMAL):
         for _ in console.progress(range(48), desc="estimate", unit="image"):
             pass
     err = capsys.readouterr().err
@@ -166,7 +166,7 @@ def test_progress_in_a_log_is_a_few_plain_lines(capsys, monkeypatch):
                                                          "estimate: 75% (36/48", "estimate: 100% (48/48"], lines
     # short work says nothing; a bar updated by hand does the same
     monkeypatch.setattr(console, "_clock", lambda: 0.0)
-    with console.session(console.NORMAL):
+    with console.command_output(console.NORMAL):
         bar = console.progress(total=500, desc="errors", unit="pair")
         bar.update(250)
         bar.set_postfix(loss=1.0)
@@ -177,7 +177,7 @@ def test_progress_in_a_log_is_a_few_plain_lines(capsys, monkeypatch):
 
 def test_progress_on_a_terminal_is_a_bar(capsys, monkeypatch):
     monkeypatch.setattr(console, "_isatty", lambda stream: True)
-    with console.session(console.NORMAL):
+    with console.command_output(console.NORMAL):
         for _ in console.progress(range(5), desc="estimate", unit="image"):
             console.echo("a line between updates")
     out = capsys.readouterr()

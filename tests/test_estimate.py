@@ -94,7 +94,7 @@ def test_templates_icp_candidates_from_a_scene(tmp_path, templates_dir, ds):
     assert doc["conf"]["coarse"] == "templates" and doc["conf"]["depth_refine"] == "icp"
     # cached: a second run skips; other settings are refused without --overwrite
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
-              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out)])
     assert r.exit_code == 0 and "skipping" in r.output
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
               "--depth-refine", "icp", "--top-k", "2", "--templates-dir", str(templates_dir), "--out", str(out)])

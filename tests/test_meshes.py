@@ -340,7 +340,7 @@ def test_big_mesh_rendered_from_cached_decimated_copy(tmp_path, monkeypatch, cap
     T = np.eye(4)
     T[2, 3] = 200.0
     capsys.readouterr()
-    with warnings.catch_warnings(record=True) as w, console.session(console.VERBOSE):
+    with warnings.catch_warnings(record=True) as w, console.command_output(console.VERBOSE):
         warnings.simplefilter("always")
         small = _render(mesh, T)
         again = _render(mesh, T)  # second renderer in the process: the copy in memory, said once
@@ -360,11 +360,11 @@ def test_big_mesh_rendered_from_cached_decimated_copy(tmp_path, monkeypatch, cap
     # a new process (memory cache empty) reads the copy from disk: no decimation
     decimate.clear_memory_cache()
     monkeypatch.setattr(fast_simplification, "simplify", lambda *a, **k: pytest.fail("decimated again"))
-    with console.session(console.NORMAL):  # said with --verbose only
+    with console.command_output(console.NORMAL):  # said with --verbose only
         from_disk = _render(mesh, T)
     assert "decimated" not in capsys.readouterr().err
     decimate.clear_memory_cache()
-    with console.session(console.VERBOSE):
+    with console.command_output(console.VERBOSE):
         assert np.array_equal(_render(mesh, T).mask, small.mask)
     assert "(cached " in capsys.readouterr().err
     assert np.array_equal(from_disk.mask, small.mask)

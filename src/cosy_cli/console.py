@@ -15,7 +15,7 @@ Three levels (the CLI sets them from ``-q/--quiet`` and ``-v/--verbose``):
 
 Everything here writes to ``sys.stdout``/``sys.stderr`` as they are at the call (so redirections
 and test runners see it). Library code that runs outside the CLI keeps Python's warnings: the
-routing below is installed only for the time of a command (:func:`session`).
+routing below is installed only for the time of a command (:func:`command_output`).
 """
 
 from __future__ import annotations
@@ -197,7 +197,7 @@ def capture_records(caught) -> list[dict]:
 
 
 @contextlib.contextmanager
-def session(value: int = NORMAL):
+def command_output(value: int = NORMAL):
     """One command's output: the verbosity, cosy's warnings routed here (genuine ones one line
     each, tolerated ones summarised), the pending summaries printed at the end. Restores the
     previous verbosity and warning handling on exit."""

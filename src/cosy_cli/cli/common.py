@@ -95,7 +95,7 @@ def _verbosity(quiet: bool, verbose: bool) -> int:
 
 def user_errors(fn):
     """Decorator for click commands (under their options): adds ``-q/--quiet`` and ``-v/--verbose``
-    and runs the command in a :func:`cosy_cli.console.session` (its warnings one line each, the
+    and runs the command in a :func:`cosy_cli.console.command_output` (its warnings one line each, the
     tolerated input problems summarised at the end); CosyError -> 'error: ...' lines, exit 2, no
     traceback."""
     from .. import console
@@ -103,7 +103,7 @@ def user_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, quiet: bool = False, verbose: bool = False, **kwargs):
         try:
-            with console.session(_verbosity(quiet, verbose)):
+            with console.command_output(_verbosity(quiet, verbose)):
                 return fn(*args, **kwargs)
         except DatasetProblems as e:
             for p in e.problems:
