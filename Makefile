@@ -34,7 +34,9 @@ LOCK := requirements/lock.txt
 # torch: the CPU build. `pip install torch==X` here finds it among the local wheels; elsewhere
 # give pip PyTorch's CPU wheel index (PIP_EXTRA_INDEX_URL), or pip takes the multi-GB CUDA build.
 TORCH_VERSION ?= 2.13.0
-PIP_QUIET ?= -q
+# pip prints errors only: a machine's pip configuration can add one "WARNING: Location ... is
+# ignored" line per package and flood `make demo > log`. PIP_QUIET=-q shows pip's warnings again.
+PIP_QUIET ?= -qq
 
 $(VENV)/.installed: pyproject.toml $(LOCK)
 	$(MAKE) sysdeps

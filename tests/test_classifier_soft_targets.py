@@ -187,7 +187,7 @@ def test_fine_tune_from_a_classifier_checkpoint(tmp_path):
     def run(args):
         return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
-    base = ["train", "classifier", "--dataset", SAMPLES, "--batch-size", 8, "--checkpoint-every", 1, "--quiet"]
+    base = ["train", "classifier", "--dataset", SAMPLES, "--batch-size", 8, "--checkpoint-every", 1]
     r = run(base + ["--out", tmp_path / "a", "--iterations", 1, "--soft-targets", "none"])
     assert r.exit_code == 0, r.output
     a = torch.load(tmp_path / "a" / "checkpoint.pt", map_location="cpu", weights_only=False)

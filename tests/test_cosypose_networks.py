@@ -277,7 +277,7 @@ def test_estimate_runs_cosypose_networks(cc, exported, nets, case, tmp_path, poi
     r = CliRunner().invoke(cli, ["estimate", "--dataset", str(root), "--split", "test", "--detections",
                                  str(root / "dets.json"), "--coarse", str(exported), "--refiner",
                                  str(FIX / "run_b3"), "--depth-refine", "none", "--refiner-iterations", "1",
-                                 "--out", str(out), "--quiet"], catch_exceptions=False)
+                                 "--out", str(out)], catch_exceptions=False)
     assert r.exit_code == 0, r.output
     assert "coarse network -> refiner x1" in r.output
     res = bop.read_results(out)

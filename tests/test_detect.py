@@ -185,11 +185,11 @@ def test_detect_from_gt_feeds_estimate_and_is_cached(tmp_path, ds):
     doc = json.loads((tmp_path / "dets.meta.json").read_text())
     assert doc["inputs"]["source"] == "gt" and doc["detections"] == 64 and doc["detections_per_object"]["3"] == 8
     # cached: a second run skips; other settings are refused without --overwrite
-    r = _run(["detect", "--scene", SCENE, "--from-gt", "--out", out, "--quiet"])
+    r = _run(["detect", "--scene", SCENE, "--from-gt", "--out", out])
     assert r.exit_code == 0 and "skipping" in r.output
     r = _run(["detect", "--scene", SCENE, "--from-gt", "--out", out, "--min-score", "0.5"])
     assert r.exit_code == 2 and "settings changed (min_score)" in r.output and "--overwrite" in r.output
-    r = _run(["detect", "--scene", SCENE, "--from-gt", "--out", out, "--min-score", "0.5", "--overwrite", "--quiet"])
+    r = _run(["detect", "--scene", SCENE, "--from-gt", "--out", out, "--min-score", "0.5", "--overwrite"])
     assert r.exit_code == 0 and "skipping" not in r.output
 
     # `cosy estimate --detections` takes the file unchanged (tiny templates: fast)

@@ -252,7 +252,7 @@ def test_train_resume_and_export_a_classifier(tmp_path):
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     run = tmp_path / "run"
     base = ["train", "classifier", "--dataset", SAMPLES, "--out", run, "--batch-size", 8, "--checkpoint-every", 1,
-            "--init", stage.SHIPPED_DETECTOR, "--quiet"]
+            "--init", stage.SHIPPED_DETECTOR]
     r = _run(base + ["--iterations", 2])
     assert r.exit_code == 0, r.output
     assert "BatchNorms recalibrated" in r.output and (run / "checkpoint.pt").is_file()

@@ -342,7 +342,7 @@ def test_cli_detector_warm_start_and_sampling_options(tmp_path):
     init = export_onnx(net, tmp_path / "init.onnx")
     out = tmp_path / "run"
     args = ["train", "detector", "--dataset", str(DATA), "--out", str(out), "--input", "64x48", "--batch-size", "2",
-            "--workers", "0", "--warmup", "1", "--iterations", "1", "--quiet", "--init", str(init),
+            "--workers", "0", "--warmup", "1", "--iterations", "1", "--init", str(init),
             "--class-weights", "7=3,6=2", "--confusable", "6:7:2,4:5"]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output

@@ -74,7 +74,7 @@ def test_boxes_are_clipped_to_the_image():
 def test_templates_icp_candidates_from_a_scene(tmp_path, templates_dir, ds):
     out = tmp_path / "cands.csv"
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
-              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "coarse templates" in r.output and "ICP" in r.output
     res = bop.read_results(out)
@@ -94,7 +94,7 @@ def test_templates_icp_candidates_from_a_scene(tmp_path, templates_dir, ds):
     assert doc["conf"]["coarse"] == "templates" and doc["conf"]["depth_refine"] == "icp"
     # cached: a second run skips; other settings are refused without --overwrite
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
-              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+              "--depth-refine", "icp", "--templates-dir", str(templates_dir), "--out", str(out)])
     assert r.exit_code == 0 and "skipping" in r.output
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
               "--depth-refine", "icp", "--top-k", "2", "--templates-dir", str(templates_dir), "--out", str(out)])
@@ -128,7 +128,7 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
     out = tmp_path / "v.csv"
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
               "--depth-refine", "none", "--verify-top", "8", "--rgb-refine", "none", "--top-k", "2",
-              "--templates-dir", str(templates_dir), "--out", str(out), "--quiet"])
+              "--templates-dir", str(templates_dir), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "8 verified by rendering" in r.output and "RGB refinement" not in r.output
     doc = json.loads((tmp_path / "v.json").read_text())

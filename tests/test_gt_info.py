@@ -143,7 +143,7 @@ def test_resumable_per_scene(lmo):
 
 def test_cli_masks_readable_and_consistent(lmo):
     root, _ = lmo
-    res = CliRunner().invoke(cli, ["gt-info", "--dataset", str(root), "--scene-id", "2", "--masks", "--quiet"])
+    res = CliRunner().invoke(cli, ["gt-info", "--dataset", str(root), "--scene-id", "2", "--masks"])
     assert res.exit_code == 0, res.output
     assert "1 scene(s) written" in res.output  # info existed, masks did not: the scene is redone
     scene = root / "test" / "000002"
@@ -158,7 +158,7 @@ def test_cli_masks_readable_and_consistent(lmo):
             assert gt_info.bbox_xywh(mv).tolist() == [int(v) for v in g.bbox_visib]
             n += 1
     assert n == len(list((scene / "mask_visib").glob("*.png"))) > 0
-    res = CliRunner().invoke(cli, ["gt-info", "--dataset", str(root), "--scene-id", "2", "--masks", "--quiet"])
+    res = CliRunner().invoke(cli, ["gt-info", "--dataset", str(root), "--scene-id", "2", "--masks"])
     assert res.exit_code == 0 and "0 scene(s) written" in res.output and "1 already done" in res.output
 
 

@@ -13,6 +13,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 from cosy_cli.cli.main import cli
+from cosy_cli import console
 from cosy_cli.errors import CosyError, CosyWarning
 from realdata import LMO, MEGAPOSE, needs
 
@@ -322,7 +323,7 @@ def test_hope_textured_mesh_is_not_grey():
 # --------------------------------------------------------------------------------------------
 # big meshes: a decimated copy for rendering, cached on disk
 # --------------------------------------------------------------------------------------------
-def test_big_mesh_rendered_from_cached_decimated_copy(tmp_path, monkeypatch):
+def test_big_mesh_rendered_from_cached_decimated_copy(tmp_path, monkeypatch, capsys):
     import fast_simplification
     import trimesh
 
@@ -338,12 +339,14 @@ def test_big_mesh_rendered_from_cached_decimated_copy(tmp_path, monkeypatch):
     assert len(mesh.faces) > MAX_RENDER_FACES
     T = np.eye(4)
     T[2, 3] = 200.0
-    with warnings.catch_warnings(record=True) as w:
+    capsys.readouterr()
+    with warnings.catch_warnings(record=True) as w, console.command_output(console.VERBOSE):
         warnings.simplefilter("always")
         small = _render(mesh, T)
         again = _render(mesh, T)  # second renderer in the process: the copy in memory, said once
-    msgs = [str(x.message) for x in w if issubclass(x.category, CosyWarning)]
-    assert len(msgs) == 1 and "decimated copy" in msgs[0] and "sphere.ply" in msgs[0], msgs
+    assert not [x for x in w if issubclass(x.category, CosyWarning)]  # an internal step, not a warning
+    notes = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("note: ")]
+    assert len(notes) == 1 and "decimated copy" in notes[0] and "sphere.ply" in notes[0], notes
     cached = list((tmp_path / "cache" / "meshes").glob("*.npz"))
     assert len(cached) == 1
     full = _render(mesh, T, max_faces=None)
@@ -357,9 +360,12 @@ def test_big_mesh_rendered_from_cached_decimated_copy(tmp_path, monkeypatch):
     # a new process (memory cache empty) reads the copy from disk: no decimation
     decimate.clear_memory_cache()
     monkeypatch.setattr(fast_simplification, "simplify", lambda *a, **k: pytest.fail("decimated again"))
-    with warnings.catch_warnings(record=True) as w:
-        warnings.simplefilter("always")
+    with console.command_output(console.NORMAL):  # said with --verbose only
         from_disk = _render(mesh, T)
+    assert "decimated" not in capsys.readouterr().err
+    decimate.clear_memory_cache()
+    with console.command_output(console.VERBOSE):
+        assert np.array_equal(_render(mesh, T).mask, small.mask)
+    assert "(cached " in capsys.readouterr().err
     assert np.array_equal(from_disk.mask, small.mask)
-    assert any("cached" in str(x.message) for x in w)
     decimate.clear_memory_cache()

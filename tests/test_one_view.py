@@ -34,7 +34,7 @@ def _synth(dataset, out, profile="realistic"):
 def test_one_image_dataset_runs_through_cosy_run_to_evaluation(one_image, templates, tmp_path):
     run = tmp_path / "run"
     r = CliRunner().invoke(cli, ["run", "--dataset", str(one_image), "--out", str(run), "--from-gt", "--config", "fast",
-                                 "--templates-dir", str(templates), "--to", "evaluate", "--quiet"])
+                                 "--templates-dir", str(templates), "--to", "evaluate"])
     assert r.exit_code == 0, r.output
     assert "single view: 1 of 1 group(s) had one view" in r.output
     m = json.loads((run / "run.json").read_text())

@@ -145,7 +145,7 @@ def _validate(*args):
 @needs_realdata
 def test_validate_lmo_ok_with_warnings_and_strict_fails():
     args = ["--dataset", str(LMO), "--split", "test"]
-    res, warned = _validate(*args)
+    res, warned = _validate(*args, "--verbose")  # every warning, one line each
     assert res.exit_code == 0, res.output
     n = len(warned)
     assert f"result:    OK, {n} warnings" in res.stdout, res.stdout
@@ -156,6 +156,16 @@ def test_validate_lmo_ok_with_warnings_and_strict_fails():
     rot = [w for w in warned if "scene_gt.json" in w]
     assert len(rot) >= 20 and len(rot) == len({w.split(":")[1] for w in rot})  # one per file
     assert all("cam_R_m2c rotations orthonormal only to" in w for w in rot)
+    # by default the repaired rotations of the split are one line: files, rows, the worst and where
+    plain, summarised = _validate(*args)
+    assert plain.exit_code == 0 and f"result:    OK, {n} warnings" in plain.stdout
+    assert [w for w in summarised if "symmetries_discrete[0]" in w] == sym
+    rot_sum = [w for w in summarised if "scene_gt.json" in w]
+    assert len(rot_sum) == 1 and len(summarised) == n - len(rot) + 1, summarised
+    rows = sum(int(w.split(" of ")[0].split(": ")[-1]) for w in rot)
+    worst = max(float(w.split("|R^T R - I| = ")[1].split(" ")[0]) for w in rot)
+    assert f"{rows} of " in rot_sum[0] and f"in {len(rot)} scene_gt.json files (worst {worst:.3g}: " in rot_sum[0]
+    assert "--verbose lists each file" in rot_sum[0]
     strict, _ = _validate(*args, "--strict")
     assert strict.exit_code == 2 and f"{n} warnings and --strict" in strict.stderr
 
@@ -200,22 +210,18 @@ def test_validate_lmo_bad_rotation_is_a_problem_naming_file_and_row(tmp_path):
 @needs_realdata
 def test_synth_candidates_then_match_on_lmo(tmp_path):
     cands, out = tmp_path / "cands.csv", tmp_path / "match"
-    with warnings.catch_warnings(record=True) as rec:  # under pytest the CLI's warning lines come here
-        warnings.simplefilter("always", CosyWarning)
-        r = CliRunner().invoke(cli, ["synth-candidates", "--dataset", str(LMO), "--out", str(cands)])
+    r = CliRunner().invoke(cli, ["synth-candidates", "--dataset", str(LMO), "--out", str(cands), "--verbose"])
     assert r.exit_code == 0, r.output
-    gt_warnings = _cosy_warnings(rec)
+    gt_warnings = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
     assert gt_warnings and all("scene_gt.json" in w for w in gt_warnings), gt_warnings  # the GT, repaired when read
-    assert len(gt_warnings) == len({w.split(":")[0] for w in gt_warnings})  # one per file
+    assert len(gt_warnings) == len({w.split(":")[1] for w in gt_warnings})  # one per file
     with warnings.catch_warnings():
         warnings.simplefilter("error", CosyWarning)  # what cosy writes is clean
         res = bop.read_results(cands)
     assert len(res) > 100 and bop.rotation_errors(res.T_cam_obj[:, :3, :3]).max() < 1e-8
-    with warnings.catch_warnings(record=True) as rec:
-        warnings.simplefilter("always", CosyWarning)
-        r = CliRunner().invoke(cli, ["match", "--dataset", str(LMO), "--candidates", str(cands), "--out", str(out)])
+    r = CliRunner().invoke(cli, ["match", "--dataset", str(LMO), "--candidates", str(cands), "--out", str(out), "-v"])
     assert r.exit_code == 0, r.output
-    assert not any("cands.csv" in w for w in _cosy_warnings(rec))
+    assert "cands.csv" not in r.stderr
     assert "not a rotation" not in r.output
     matches = pd.read_csv(out / "matches.csv")
     assert len(matches) == len(res) and (matches["object_id"] >= 0).sum() > len(res) // 2

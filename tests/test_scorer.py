@@ -116,7 +116,7 @@ def test_estimate_and_run_take_a_scorer(tmp_path, tiny_scorer):
     tdir = Path(tiny_scorer[1]["run"]) / "templates"
     out = tmp_path / "c.csv"
     args = ["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
-            "--depth-refine", "none", "--verify-top", "8", "--top-k", "2", "--templates-dir", str(tdir), "--quiet"]
+            "--depth-refine", "none", "--verify-top", "8", "--top-k", "2", "--templates-dir", str(tdir)]
     r = _run(args + ["--scorer", str(out_scorer), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "learned scorer" in r.output

@@ -168,7 +168,7 @@ def test_a_damaged_output_is_not_reused_as_up_to_date(chain, tmp_path):
               manifest.sidecar_path(chain["cands"])):
         shutil.copy(f, tmp_path / f.name)
     args = ["estimate", "--dataset", chain["ds"], "--detections", chain["dets"], "--out", c, "--templates-dir",
-            chain["tpl"], "--quiet"]
+            chain["tpl"]]
     assert "up to date, skipping" in _ok(args).output
     _cut_last_row(c)
     _refused(args, "cands.csv changed or truncated since cosy estimate wrote it")

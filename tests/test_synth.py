@@ -287,7 +287,7 @@ def test_cli(tmp_path):
 
     out = tmp_path / "cli"
     r = CliRunner().invoke(cli, ["synth", "--out", str(out), "--scenes", "1", "--views", "2", "--objects", "3",
-                                 "--width", "96", "--height", "72", "--quiet"])
+                                 "--width", "96", "--height", "72"])
     assert r.exit_code == 0, r.output
     assert "1 scenes, 2 images" in r.output and "on disk" in r.output
     assert json.loads((out / "camera.json").read_text())["width"] == 96

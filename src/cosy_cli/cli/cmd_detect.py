@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import dataset_options, resolve_scenes, scene_options, user_errors
 
 
@@ -41,10 +42,9 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
               help="With a classifier: also emit a box under every label whose probability is at least this x "
                    "the best label's [0.2].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images, from_gt, min_score, max_per_image,
-           nms_iou, agnostic_nms_iou, min_visib, providers, classifier, label_ratio, overwrite, quiet) -> None:
+           nms_iou, agnostic_nms_iou, min_visib, providers, classifier, label_ratio, overwrite) -> None:
     """2D detections of the dataset's objects, one BOP detections file (CosyPose's first input).
 
     Sources: the shipped detector (default) or --model, --from-json (another tool's detections,
@@ -58,7 +58,7 @@ def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images,
                            agnostic_nms_iou=agnostic_nms_iou, min_visib_fract=min_visib, providers=providers,
                            classifier=classifier, label_ratio=label_ratio)
     stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids, model=model, from_json=from_json,
-               coco_images=coco_images, from_gt=from_gt, log=click.echo, progress=not quiet)
+               coco_images=coco_images, from_gt=from_gt, log=console.echo, progress=True)
 
 
 @click.command("evaluate-detections")
@@ -80,7 +80,7 @@ def evaluate_detections(dataset, split, scene_ids, detections, coco_images, out,
     from ..evaluation import detection_ap
 
     detection_ap.main(dataset, split, detections, out, scene_ids=list(scene_ids) or None, coco_images=coco_images,
-                      min_visib_fract=min_visib, log=click.echo)
+                      min_visib_fract=min_visib, log=console.echo)
 
 
 COMMANDS = [detect, evaluate_detections]

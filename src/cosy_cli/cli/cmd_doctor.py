@@ -6,6 +6,7 @@ import sys
 
 import click
 
+from .. import console
 from .common import USER_ERROR_EXIT, user_errors
 
 
@@ -20,7 +21,7 @@ def doctor(no_render: bool) -> None:
     from .. import doctor as diag
 
     rep = diag.report(render=not no_render)
-    click.echo(rep.text())
+    console.echo(rep.text())  # with --quiet: only the error below, if any
     if rep.render_problem:
         click.echo(f"error: rendering cannot work: {rep.render_problem}", err=True)
         sys.exit(USER_ERROR_EXIT)

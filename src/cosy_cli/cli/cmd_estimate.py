@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import resolve_scenes, scene_options, user_errors
 
 COARSE_METHODS = ("network", "templates", "auto")
@@ -67,12 +68,11 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Crops per network call [32].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
              depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, templates_dir,
              scorer_model, providers, batch_size,
-             overwrite, quiet) -> None:
+             overwrite) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
     Writes one row per detection (label, the detector's score, T_cam_obj with t in mm) that
@@ -92,7 +92,7 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
                         refiner_model=refiner_model, templates_dir=templates_dir, scorer_model=scorer_model,
-                        log=click.echo, progress=not quiet)
+                        log=console.echo, progress=True)
 
 
 COMMANDS = [estimate]

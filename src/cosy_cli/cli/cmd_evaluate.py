@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import dataset_options, user_errors
 
 
@@ -40,7 +41,7 @@ def evaluate(dataset: Path, split: str, predictions: Path, out: Path, targets, m
 
     conf = evaluate_stage.resolve_conf("bop19", vsd_delta=vsd_delta, vsd=False if no_vsd else None)
     evaluate_stage.main(conf, dataset, split, predictions, out, overwrite=overwrite, targets=targets, metrics=metrics,
-                        scene_json=scene_json, models_dir=models_dir, scene_ids=list(scene_ids) or None, log=click.echo)
+                        scene_json=scene_json, models_dir=models_dir, scene_ids=list(scene_ids) or None, log=console.echo)
 
 
 COMMANDS = [evaluate]

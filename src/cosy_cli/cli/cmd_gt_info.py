@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 
@@ -24,10 +25,9 @@ from .common import user_errors
               help="Occlusion from: measured depth where the image has one, else the z-buffer of all GT objects "
                    "(auto, default); depth only; z-buffer only.")
 @click.option("--overwrite", is_flag=True, help="Recompute scenes whose scene_gt_info.json is already complete.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def gt_info(dataset: Path, split: str, split_type: str | None, scene_ids: tuple[int, ...], masks: bool,
-            models_dir: str, delta_mm: float | None, visibility: str | None, overwrite: bool, quiet: bool) -> None:
+            models_dir: str, delta_mm: float | None, visibility: str | None, overwrite: bool) -> None:
     """Compute scene_gt_info.json per scene as the BOP toolkit's calc_gt_info.py does.
 
     bbox_obj, bbox_visib ([x, y, w, h]), px_count_all, px_count_valid, px_count_visib, visib_fract;
@@ -38,8 +38,9 @@ def gt_info(dataset: Path, split: str, split_type: str | None, scene_ids: tuple[
 
     conf = None if visibility is None else {"visibility": visibility}
     summary = stage.main(conf, dataset, split, scene_ids=list(scene_ids) or None, masks=masks, split_type=split_type,
-                         models_dir=models_dir, delta_mm=delta_mm, overwrite=overwrite, progress=not quiet)
-    click.echo(summary.line())
+                         models_dir=models_dir, delta_mm=delta_mm, overwrite=overwrite, progress=True)
+    split_dir = Path(dataset) / (f"{split}_{split_type}" if split_type else split)
+    console.done(f"{summary.line()} -> {split_dir}/*/scene_gt_info.json")
 
 
 COMMANDS = [gt_info]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import dataset_options, user_errors
 
 
@@ -90,7 +91,7 @@ def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, vie
                                  symmetry_steps=symmetry_steps, refit=refit, seed=seed, label_groups=label_groups,
                                  cross_label_hypotheses=cross_label_hypotheses, hypotheses=hypotheses,
                                  hypothesis_penalty=hypothesis_penalty)
-    match_stage.main(c, dataset, split, candidates, out, overwrite=overwrite, log=click.echo)
+    match_stage.main(c, dataset, split, candidates, out, overwrite=overwrite, log=console.echo)
 
 
 @click.command("synth-candidates")
@@ -119,7 +120,7 @@ def synth_candidates(dataset: Path, split: str, out: Path, profile: str, seed: i
     """Simulate single-view candidates from GT (misses, noise, flips, gross errors, look-alikes, false positives)."""
     from ..synth import candidates as sc
 
-    sc.main(dataset, split, out, profile=profile, seed=seed, gt_out=gt_out, lookalikes=lookalikes, log=click.echo,
+    sc.main(dataset, split, out, profile=profile, seed=seed, gt_out=gt_out, lookalikes=lookalikes, log=console.echo,
             **knobs)
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 _P = click.Path(path_type=Path)
@@ -48,10 +49,9 @@ _P = click.Path(path_type=Path)
 @click.option("--symmetry-tolerance-mm", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Symmetry proposal tolerance, mm [1% of the diameter, in 0.5..2].")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-@click.option("--quiet", is_flag=True, help="No progress bars.")
 @user_errors
 def new_dataset(images_src, intrinsics, meshes, mesh_units, depth, depth_scale, boxes, out, split, scene_id,
-                first_im_id, no_symmetries, symmetry_tolerance_mm, overwrite, quiet) -> None:
+                first_im_id, no_symmetries, symmetry_tolerance_mm, overwrite) -> None:
     """Make a BOP dataset from your images, intrinsics and meshes (and 2D boxes), ready for
     `cosy validate`, `cosy templates`, `cosy estimate`.
 
@@ -71,7 +71,7 @@ def new_dataset(images_src, intrinsics, meshes, mesh_units, depth, depth_scale, 
                            depth_scale=depth_scale, symmetries=not no_symmetries,
                            symmetry_tolerance_mm=symmetry_tolerance_mm)
     stage.main(c, list(images_src), list(meshes), out, overwrite=overwrite, intrinsics=list(intrinsics),
-               depth=list(depth), boxes=list(boxes), log=click.echo, progress=not quiet)
+               depth=list(depth), boxes=list(boxes), log=console.echo, progress=True)
 
 
 COMMANDS = [new_dataset]

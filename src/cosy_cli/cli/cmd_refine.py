@@ -10,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import dataset_options, user_errors
 
 
@@ -75,7 +76,7 @@ def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss
                                   explained_frac=explained_frac, min_agreeing=min_agreeing, nms_mm=nms_mm,
                                   exclusion_frac=exclusion_frac, image_check=image_check,
                                   image_check_leftovers=leftover_check, feature_cameras=feature_cameras)
-    refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=click.echo)
+    refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=console.echo)
 
 
 COMMANDS = [refine]

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import resolve_scenes, scene_options, user_errors
 
 STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
@@ -47,11 +48,10 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
               help="Scenes in parallel (spawned processes).")
 @click.option("--dask-scheduler", default=None, help="Run the scenes on this Dask cluster (tcp://HOST:PORT).")
 @click.option("--overwrite", is_flag=True, help="Rerun every stage even if it is up to date.")
-@click.option("--quiet", is_flag=True, help="No progress bars.")
 @user_errors
 def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
         templates_dir, scorer_model, views_per_group, known_cameras, first, last, settings, workers, dask_scheduler,
-        overwrite, quiet) -> None:
+        overwrite) -> None:
     """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
 
     A stage whose settings, inputs and code did not change is skipped; a changed setting reruns
@@ -70,7 +70,7 @@ def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, 
                    candidates=candidates, models_dir=models_dir,
                    templates_dir=templates_dir, scorer_model=scorer_model, overrides=overrides, first=first,
                    last=last,
-                   workers=workers, dask_scheduler=dask_scheduler, log=click.echo, progress=not quiet)
+                   workers=workers, dask_scheduler=dask_scheduler, log=console.echo, progress=True)
 
 
 COMMANDS = [run]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 
@@ -32,7 +33,7 @@ def symmetries(models_dir: Path, write: bool, tolerance_mm, obj_ids, n_points: i
     from ..objects import detect_symmetries
 
     detect_symmetries.main(models_dir, write=write, tolerance_mm=tolerance_mm, obj_ids=list(obj_ids) or None,
-                           n_points=n_points, seed=seed, echo=click.echo)
+                           n_points=n_points, seed=seed, echo=console.echo)
 
 
 COMMANDS = [symmetries]

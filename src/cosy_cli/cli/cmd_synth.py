@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 
@@ -34,10 +35,9 @@ def _human_bytes(n: int) -> str:
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out (or only its --split, for a dataset of "
                                                 "the same objects and camera).")
 @click.option("--models-only", is_flag=True, help="Write only models/, models_eval/ and camera.json.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def synth(out: Path, scenes: int, views: int, objects: int, seed: int, width: int, height: int, split: str,
-          overwrite: bool, models_only: bool, quiet: bool) -> None:
+          overwrite: bool, models_only: bool) -> None:
     """Write a BOP dataset of 8 procedural T-LESS-like objects resting on a table.
 
     The objects are fixed (the same models for every seed); scenes, cameras, colours, lights and
@@ -49,14 +49,13 @@ def synth(out: Path, scenes: int, views: int, objects: int, seed: int, width: in
     from ..synth import main
 
     s = main(out, scenes, views, objects, seed=seed, width=width, height=height, split=split, overwrite=overwrite,
-             models_only=models_only, progress=not quiet)
+             models_only=models_only, progress=True)
     if models_only:
-        click.echo(f"{s.out}: {s.mode}: {s.n_objects} object models, {_human_bytes(s.bytes_on_disk)} on disk, "
-                   f"{s.seconds:.1f} s")
+        console.done(f"synth: wrote {s.out}: {s.mode}: {s.n_objects} object models, "
+                     f"{_human_bytes(s.bytes_on_disk)} on disk, {s.seconds:.1f} s")
         return
-    click.echo(f"{s.out}: {s.mode} '{s.split}': {s.n_scenes} scenes, {s.n_images} images "
-               f"({width} x {height}), {s.n_instances} object instances of {s.n_objects} objects, "
-               f"{_human_bytes(s.bytes_on_disk)} on disk, {s.seconds:.1f} s")
-
+    console.done(f"synth: wrote {s.out}: {s.mode} '{s.split}': {s.n_scenes} scenes, {s.n_images} images "
+                 f"({width} x {height}), {s.n_instances} object instances of {s.n_objects} objects, "
+                 f"{_human_bytes(s.bytes_on_disk)} on disk, {s.seconds:.1f} s")
 
 COMMANDS = [synth]

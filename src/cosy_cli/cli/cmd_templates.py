@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 
@@ -50,7 +51,7 @@ def templates(models_dir: Path, out: Path, conf: str, viewpoints, inplane, crop,
     from ..singleview.training_free import templates as tpl
 
     c = tpl.resolve_conf(conf, viewpoints=viewpoints, inplane=inplane, crop=crop, features=features)
-    tpl.main(c, models_dir, out, overwrite=overwrite, log=click.echo)
+    tpl.main(c, models_dir, out, overwrite=overwrite, log=console.echo)
 
 
 COMMANDS = [templates]

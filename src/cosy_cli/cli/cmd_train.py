@@ -11,6 +11,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 BACKBONES = [f"efficientnet-b{i}" for i in range(4)]
@@ -107,11 +108,9 @@ def _pairs(ctx, param, value):
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=None, help="Steps between checkpoints [200].")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its checkpoint (same settings).")
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
-          iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite,
-          quiet) -> None:
+          iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite) -> None:
     """Train the KIND (coarse or refiner PoseNet, the 2D detector, its box classifier or the
     hypothesis scorer) on domain-randomised renders of the dataset's objects.
 
@@ -139,7 +138,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
                                          warmup=warmup, schedule=schedule, device=device, workers=workers, seed=seed,
                                          checkpoint_every=checkpoint_every)
         scorer_train.main(conf, models_dir if models_dir is not None else Path(dataset) / "models", out,
-                          overwrite=overwrite, camera=camera, resume=resume, log=click.echo, progress=not quiet)
+                          overwrite=overwrite, camera=camera, resume=resume, log=console.echo, progress=True)
         return
     if dataset is None:
         raise click.UsageError("Missing option '--dataset'.")
@@ -154,8 +153,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
             None, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
             device=device, workers=workers, seed=seed, checkpoint_every=checkpoint_every, class_weights=class_weights,
             confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets)
-        classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo,
-                              progress=not quiet)
+        classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
+                              progress=True)
         return
     if soft_targets is not None:
         raise click.UsageError("--soft-targets is for the box classifier")
@@ -170,8 +169,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
                                       lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
                                       seed=seed, checkpoint_every=checkpoint_every, init=init,
                                       class_weights=class_weights, confusable=confusable, p_pair=p_pair)
-        det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo,
-                       progress=not quiet)
+        det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
+                       progress=True)
         return
     if input_size is not None or init is not None or class_weights or confusable or p_pair is not None:
         raise click.UsageError("--input, --init, --class-weights, --confusable and --p-pair are for the detector; "
@@ -181,7 +180,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     conf = train_mod.resolve_conf(None, kind=kind, backbone=backbone, crop_size=crop, iterations=iterations,
                                   batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule, device=device,
                                   workers=workers, seed=seed, checkpoint_every=checkpoint_every)
-    train_mod.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=click.echo, progress=not quiet)
+    train_mod.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo, progress=True)
 
 
 @click.command("export")
@@ -206,7 +205,7 @@ def export(run, out, accuracy) -> None:
     if cosypose_compat.is_cosypose_run(run):
         if accuracy is not None:
             raise click.UsageError("--accuracy is for cosy's own runs")
-        cosypose_compat.export_onnx(run, out, log=click.echo)
+        cosypose_compat.export_onnx(run, out, log=console.echo)
         return
     if Path(run).is_dir() and not (Path(run) / "checkpoint.pt").is_file():
         from ..errors import CosyError
@@ -219,19 +218,19 @@ def export(run, out, accuracy) -> None:
     if det_train.run_kind(run) == "scorer":
         from ..training import scorer as scorer_train
 
-        scorer_train.export(run, out, log=click.echo)
+        scorer_train.export(run, out, log=console.echo)
         return
     if det_train.run_kind(run) == "classifier":
         from ..detection import classifier_train
 
-        classifier_train.export(run, out, accuracy=accuracy, log=click.echo)
+        classifier_train.export(run, out, accuracy=accuracy, log=console.echo)
         return
     if det_train.run_kind(run) == "detector":
-        det_train.export(run, out, accuracy=accuracy, log=click.echo)
+        det_train.export(run, out, accuracy=accuracy, log=console.echo)
         return
     from ..training import train as train_mod
 
-    train_mod.export(run, out, accuracy=accuracy, log=click.echo)
+    train_mod.export(run, out, accuracy=accuracy, log=console.echo)
 
 
 COMMANDS = [train, export]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from ..errors import CosyError, DatasetProblems
 from .common import user_errors
 
@@ -36,9 +37,10 @@ def validate(dataset: Path, split: str, split_type: str | None, camera: str | No
     """Check a BOP dataset: files, JSON, rotations, intrinsics, image sizes, GT, models, symmetries, targets.
 
     Prints a summary on stdout ("result: OK", "OK, N warnings" or the problem count). On stderr,
-    one line per warning, "warning: <file>: <where>: <what>" (tolerated, as the BOP toolkit does:
-    rotations orthonormal only to 0.05, repaired when read; symmetries that move the surface by up
-    to 5% of the diameter; no scene_gt_info.json), then one line per problem:
+    before it, one line per warning, "warning: <file>: <where>: <what>" (tolerated, as the BOP
+    toolkit does: rotations orthonormal only to 0.05, repaired when read, summed up over the files
+    of the split unless --verbose; symmetries that move the surface by up to 5% of the diameter;
+    no scene_gt_info.json), then one line per problem:
     <file>: <where>: <what is wrong, what was expected>. Exit 0 without problems (with --strict:
     without warnings either), else 2.
     """
@@ -46,9 +48,9 @@ def validate(dataset: Path, split: str, split_type: str | None, camera: str | No
 
     report = validate_dataset(dataset, split, split_type, models_dir=models_dir, max_images=max_images, full=full,
                               symmetry_tol_mm=symmetry_tol, max_per_check=max_per_check, camera=camera)
-    click.echo(report.summary())
-    for w in report.warnings:
-        click.echo(f"warning: {w}", err=True)
+    console.replay(report.warning_records)  # genuine ones one line each, tolerated ones summarised
+    console.flush()
+    console.echo(report.summary())
     if report.problems:
         raise DatasetProblems(report.problems)
     if strict and report.warnings:

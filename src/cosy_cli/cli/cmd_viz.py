@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from .. import console
 from .common import user_errors
 
 
@@ -20,9 +21,8 @@ from .common import user_errors
 @click.option("--groups-per-scene", type=click.IntRange(min=1), default=None,
               help="Only the first N groups of each scene (default: all).")
 @click.option("--overwrite", is_flag=True, help="Redraw figures that are already there and up to date.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
-def viz(run_dir: Path, scene_ids, out, groups_per_scene, overwrite: bool, quiet: bool) -> None:
+def viz(run_dir: Path, scene_ids, out, groups_per_scene, overwrite: bool) -> None:
     """Figures of a run (per group: views with their single-view candidates, the refined scene
     re-projected, a top view of the recovered cameras and objects) and RUN_DIR/report.html
     (settings, stage timings, single- vs multi-view metrics, every figure).
@@ -32,8 +32,8 @@ def viz(run_dir: Path, scene_ids, out, groups_per_scene, overwrite: bool, quiet:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from .. import viz as viz_mod
 
-    viz_mod.main(run_dir, out=out, scene_ids=list(scene_ids) or None, overwrite=overwrite, log=click.echo,
-                 progress=not quiet, groups_per_scene=groups_per_scene)
+    viz_mod.main(run_dir, out=out, scene_ids=list(scene_ids) or None, overwrite=overwrite, log=console.echo,
+                 progress=True, groups_per_scene=groups_per_scene)
 
 
 COMMANDS = [viz]

@@ -65,33 +65,46 @@ def resolve_scenes(scene, dataset, split, scene_ids):
 
 
 def setup_runtime() -> None:
-    """Environment that must be set before numpy/torch/OpenGL are imported by a command; tolerated
-    input problems (:class:`~cosy_cli.errors.CosyWarning`) print as one ``warning: ...`` line each."""
-    import warnings
-
-    from ..errors import CosyWarning
-
+    """Environment that must be set before numpy/torch/OpenGL are imported by a command."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    previous = warnings.showwarning
 
-    def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, CosyWarning):
-            click.echo(f"warning: {message}", err=True)
-        else:
-            previous(message, category, filename, lineno, file, line)
 
-    warnings.showwarning = show
-    warnings.simplefilter("always", CosyWarning)  # one per file is the caller's job, not a filter's
+def verbosity_options(fn):
+    """``-q/--quiet`` and ``-v/--verbose`` (see :mod:`cosy_cli.console`), on the ``cosy`` group and every command."""
+    fn = click.option("-v", "--verbose", is_flag=True,
+                      help="Also list every tolerated input problem and note internal steps (decimated render "
+                           "copies, caches).")(fn)
+    return click.option("-q", "--quiet", is_flag=True,
+                        help="Only errors and warnings to act on: no progress, no summaries, no stage lines.")(fn)
+
+
+def _verbosity(quiet: bool, verbose: bool) -> int:
+    """The command's own flags, else those given to the ``cosy`` group, else normal."""
+    from .. import console
+
+    if quiet and verbose:
+        raise click.UsageError("give at most one of --quiet and --verbose")
+    if not (quiet or verbose):
+        ctx = click.get_current_context(silent=True)
+        root = ctx.find_root() if ctx is not None else None
+        if root is not None and root is not ctx:
+            quiet, verbose = bool(root.params.get("quiet")), bool(root.params.get("verbose"))
+    return console.VERBOSE if verbose else console.QUIET if quiet else console.NORMAL
 
 
 def user_errors(fn):
-    """Decorator for click commands: CosyError -> 'error: ...' lines, exit 2, no traceback."""
+    """Decorator for click commands (under their options): adds ``-q/--quiet`` and ``-v/--verbose``
+    and runs the command in a :func:`cosy_cli.console.command_output` (its warnings one line each, the
+    tolerated input problems summarised at the end); CosyError -> 'error: ...' lines, exit 2, no
+    traceback."""
+    from .. import console
 
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args, quiet: bool = False, verbose: bool = False, **kwargs):
         try:
-            return fn(*args, **kwargs)
+            with console.command_output(_verbosity(quiet, verbose)):
+                return fn(*args, **kwargs)
         except DatasetProblems as e:
             for p in e.problems:
                 click.echo(p, err=True)
@@ -103,4 +116,4 @@ def user_errors(fn):
             click.echo("interrupted: finished outputs are kept, the unfinished one was not written", err=True)
             sys.exit(130)
 
-    return wrapper
+    return verbosity_options(wrapper)

@@ -9,17 +9,19 @@ from __future__ import annotations
 import click
 
 from .. import __version__
-from .common import setup_runtime
+from .common import setup_runtime, verbosity_options
 
 setup_runtime()
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="cosy")
-def cli() -> None:
+@verbosity_options
+def cli(quiet: bool, verbose: bool) -> None:
     """cosy: multi-view multi-object 6D pose estimation (CosyPose) over BOP datasets.
 
     Lengths are millimetres, poses are T_a_b (maps frame b into frame a), cameras are OpenCV.
+    -q/--quiet and -v/--verbose go here or after any command.
     """
 
 

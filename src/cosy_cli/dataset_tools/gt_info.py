@@ -311,7 +311,7 @@ def main(conf: str | Mapping | None, dataset: str | Path, split: str = "test", *
     conf: a preset name of :data:`GT_INFO_CONFS` or a dict of its keys; ``delta_mm`` overrides it.
     models_dir: the meshes, relative to the dataset folder or absolute (T-LESS: models_cad).
     Scenes already done (see :func:`scene_is_done`) are skipped unless ``overwrite``."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     conf = check_conf(merge_conf(GT_INFO_CONFS, conf, {"delta_mm": delta_mm}, default="default", what="gt-info"))
     ds = BopDataset(Path(dataset), split, split_type=split_type, models_subdir=str(models_dir))
@@ -338,7 +338,7 @@ def main(conf: str | Mapping | None, dataset: str | Path, split: str = "test", *
     vertices = {o: db[o].vertices for o in needed}
     n_images = sum(len(gt) for _, gt in todo)
     with SceneRenderer({o: db[o].mesh for o in needed}, 640, 480, znear=ZNEAR_MM, zfar=ZFAR_MM) as ren, \
-            tqdm(total=n_images, desc="gt-info", unit="img", disable=not progress) as bar:
+            progress_bar(total=n_images, desc="gt-info", unit="img", enabled=progress) as bar:
         for sid, gt in todo:
             cams = ds.scene_camera(sid)
             info: dict[int, list[bop.GtInfo]] = {}

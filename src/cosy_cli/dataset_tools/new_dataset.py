@@ -591,7 +591,7 @@ def main(conf: str | dict | None, images_src: Sequence[str | Path], meshes: Sequ
     optional depth folders and box files (``intrinsics``: none, one, or one per images folder;
     ``depth`` and ``boxes``: none or one per images folder). Returns the summary written to
     ``new_dataset.json`` (objects, scenes, timings in s)."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
@@ -675,7 +675,7 @@ def main(conf: str | dict | None, images_src: Sequence[str | Path], meshes: Sequ
         models_dir.mkdir()
         infos: dict[int, bop.ModelInfo] = {}
         t_mesh = t_sym = 0.0
-        for m in tqdm(mesh_list, desc="meshes", unit="mesh", disable=not progress or len(mesh_list) < 2):
+        for m in progress_bar(mesh_list, desc="meshes", unit="mesh", enabled=progress and len(mesh_list) >= 2):
             t0 = time.perf_counter()
             mesh = load_mesh(m.path)
             if scale != 1.0:
@@ -725,7 +725,7 @@ def main(conf: str | dict | None, images_src: Sequence[str | Path], meshes: Sequ
         first = scenes[0].images[0]
         scenes_doc = []
         n_images = sum(len(sc.images) for sc in scenes)
-        bar = tqdm(total=n_images, desc="images", unit="img", disable=not progress or n_images < 20)
+        bar = progress_bar(total=n_images, desc="images", unit="img", enabled=progress and n_images >= 20)
         for sc in scenes:
             sdir = tmp / c["split"] / f"{sc.scene_id:06d}"
             (sdir / "rgb").mkdir(parents=True)

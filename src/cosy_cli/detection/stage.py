@@ -146,7 +146,7 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
     boxes are rescored with :func:`~cosy_cli.detection.classifier.rescore` (settings label_mix,
     label_ratio, background), then per-class NMS again; its seconds per image are appended to
     ``classifier_times`` and included in the returned times."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     known = set(ds.models_info())
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
@@ -157,7 +157,7 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
             classifier.classify(rgb0, np.asarray(b0, dtype=np.float64).reshape(-1, 4)[:1] if len(b0) else
                                 np.array([[0.0, 0.0, 31.0, 31.0]]))
     parts, times, dropped = [], [], {}
-    for sid, im in tqdm(images, desc="detect", unit="image", disable=not progress, dynamic_ncols=True):
+    for sid, im in progress_bar(images, desc="detect", unit="image", enabled=progress):
         rgb = ds.read_rgb(sid, im)
         t0 = time.perf_counter()
         boxes, scores, labels = detector.detect(rgb, conf["min_score"], conf["max_per_image"], conf["nms_iou"])

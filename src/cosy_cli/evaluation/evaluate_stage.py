@@ -260,11 +260,11 @@ def compute_errors(pairs: pd.DataFrame, T_est: np.ndarray, T_gt: np.ndarray, K: 
     """add, adi, mssd, mspd, re, te for rows of ``pairs`` (columns est_row, gt_row, obj_id) with
     poses T_est[est_row], T_gt[gt_row] and intrinsics K (len(pairs), 3, 3)."""
     from scipy.spatial import cKDTree
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     out = {k: np.full(len(pairs), np.nan) for k in ("add", "adi", "mssd", "mspd", "re", "te")}
     objs = pairs["obj_id"].to_numpy()
-    bar = tqdm(total=len(pairs), desc="errors", unit="pair", disable=not progress or len(pairs) < 200, leave=False)
+    bar = progress_bar(total=len(pairs), desc="errors", unit="pair", enabled=progress and len(pairs) >= 200)
     for obj_id in np.unique(objs):
         idx = np.flatnonzero(objs == obj_id)
         model = db[int(obj_id)]
@@ -289,7 +289,7 @@ def compute_vsd(pairs: pd.DataFrame, T_est: np.ndarray, T_gt: np.ndarray, cams: 
                 delta: float, taus, progress: bool = True) -> np.ndarray:
     """(len(pairs), len(taus)) VSD errors for pairs (est_row, gt_row, obj_id, scene_id, im_id, gt_index),
     rendering the evaluation models with :class:`cosy_cli.rendering.SceneRenderer` (exact depth, mm)."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     taus = np.asarray(taus, dtype=np.float64)
     out = np.ones((len(pairs), len(taus)))
@@ -308,7 +308,7 @@ def compute_vsd(pairs: pd.DataFrame, T_est: np.ndarray, T_gt: np.ndarray, cams: 
     pos = {k: i for i, k in enumerate(pairs.index)}
     with SceneRenderer({o: db[o].mesh for o in obj_needed}, 64, 64) as ren:
         groups = list(todo.groupby(["scene_id", "im_id"], sort=True))
-        for (scene_id, im_id), sub in tqdm(groups, desc="VSD", unit="image", disable=not progress, leave=False):
+        for (scene_id, im_id), sub in progress_bar(groups, desc="VSD", unit="image", enabled=progress):
             depth_test = ds.read_depth(int(scene_id), int(im_id))
             H, W = depth_test.shape
             K = cams[(int(scene_id), int(im_id))].K
@@ -365,11 +365,13 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
                                    lambda: cache.sidecar_stale_reasons(out / "scores.json", None, inputs), log):
         return None
 
+    from ..errors import warn as warn_user
+
     warnings: list[str] = []
 
-    def warn(msg: str) -> None:
+    def warn(msg: str) -> None:  # kept in scores.json, and said (once per command) on stderr
         warnings.append(msg)
-        log(f"warning: {msg}")
+        warn_user(msg)
 
     from ..objects import continuous_steps_for_max_step
 

@@ -131,13 +131,21 @@ def clean_rotations(R: np.ndarray) -> np.ndarray:
     return flat.reshape(R.shape)
 
 
+def _split_folder(path: str | Path) -> Path:
+    """The folder a file's tolerated problems are summarised for: the split folder of a file in a
+    scene folder (SPLIT/000001/scene_gt.json), else the file's own folder."""
+    p = Path(path)
+    return p.parent.parent if p.parent.name.isdigit() else p.parent
+
+
 def repair_rotations(R: np.ndarray, where, *, path: str | Path, what: str = "R",
                      rotations: str = "repair") -> tuple[np.ndarray, np.ndarray]:
     """Check rotations R (n, 3, 3) read from ``path``; returns (R repaired, |R^T R - I| after repair).
 
     Every R within :data:`ROTATION_REPAIR_TOL` is replaced by the nearest rotation (SVD). When
-    some were off by more than :data:`ROTATION_TOL`, one :func:`~cosy_cli.errors.warn` for the
-    whole file says how many, the worst deviation and where (``where(i)`` describes row i). Worse
+    some were off by more than :data:`ROTATION_TOL`, one :func:`~cosy_cli.errors.tolerate` for the
+    whole file says how many, the worst deviation and where (``where(i)`` describes row i; the CLI
+    sums the files of a split into one line). Worse
     ones (or det <= 0): ``rotations="repair"`` raises a :class:`CosyError` naming the first such
     row; ``"keep_bad"`` returns them as read, their deviation in the second array (> the repair
     tolerance; 0-ish elsewhere), for a caller that reports each; ``"raw"`` returns R unchecked.
@@ -159,12 +167,14 @@ def repair_rotations(R: np.ndarray, where, *, path: str | Path, what: str = "R",
                         + (f"; {more} more row(s) like it" if more else ""), path=path, where=where(i))
     off = (err > ROTATION_TOL) & ~bad
     if off.any():
-        from ..errors import warn
+        from ..errors import tolerate
 
         j = int(np.flatnonzero(off)[np.argmax(err[off])])
-        warn(f"{int(off.sum())} of {len(R)} {what} rotations orthonormal only to |R^T R - I| = {err[j]:.3g} "
-             f"(worst: {where(j)}); replaced by the nearest rotation (tolerated up to {ROTATION_REPAIR_TOL:g})",
-             path=path)
+        fix = f"replaced by the nearest rotation (tolerated up to {ROTATION_REPAIR_TOL:g})"
+        tolerate(f"{int(off.sum())} of {len(R)} {what} rotations orthonormal only to |R^T R - I| = {err[j]:.3g} "
+                 f"(worst: {where(j)}); {fix}", path=path, group=_split_folder(path),
+                 what=f"{what} rotations orthonormal only to |R^T R - I| > {ROTATION_TOL:g}", fix=fix,
+                 rows=int(off.sum()), total=len(R), worst=float(err[j]), worst_at=where(j))
     fix = (err > 1e-12) & ~bad
     if fix.any():
         R[fix] = nearest_rotation(R[fix])

@@ -432,9 +432,9 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     skey = key[order]
     bar = None
     if progress and n > 5000:  # about a second or more
-        from tqdm import tqdm
+        from ..console import progress as progress_bar
 
-        bar = tqdm(total=len(groups), desc="match", unit="group", leave=False, disable=None)
+        bar = progress_bar(total=len(groups), desc="match", unit="group")
     # groups are matched in batches (same results as one by one, less overhead per group)
     batch: list[int] = []
     n_batch = 0

@@ -1096,9 +1096,9 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
             checked = {id(g) for g in with_images}
     bar = None
     if progress and (len(groups) > 50 or checker is not None):
-        from tqdm import tqdm
+        from ..console import progress as progress_bar
 
-        bar = tqdm(total=len(groups), desc="refine", unit="group", leave=False, disable=None)
+        bar = progress_bar(total=len(groups), desc="refine", unit="group")
     results = []
     diam = {int(o): float(i.diameter) for o, i in infos.items()}
     score_min = float((doc.get("conf") or {}).get("score_threshold", -np.inf))

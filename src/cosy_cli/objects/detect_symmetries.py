@@ -860,7 +860,7 @@ def main(models_dir: str | Path, *, write: bool = False, tolerance_mm: float | N
     a table and a comparison with ``models_info.json``, and with ``write`` update that file
     (only the two symmetry fields of the processed objects change; the file is created from the
     meshes when missing)."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     from ..io import bop
     from .database import load_mesh, model_info_from_mesh
@@ -898,14 +898,15 @@ def main(models_dir: str | Path, *, write: bool = False, tolerance_mm: float | N
         for obj_id in known:
             meshes[obj_id] = load_mesh(meshes_on_disk[obj_id])
             new_infos[obj_id] = model_info_from_mesh(meshes[obj_id])
-    for obj_id in tqdm(todo, desc="symmetries", unit="obj", disable=None if progress is None else not progress):
+    for obj_id in progress_bar(todo, desc="symmetries", unit="obj", enabled=progress is not False):
         path = models_dir / f"obj_{obj_id:06d}.ply"
         mesh = meshes[obj_id] if obj_id in meshes else load_mesh(path)
         info = new_infos[obj_id]
         tol = tolerance_mm if tolerance_mm is not None else default_tolerance(info.diameter)
         if info.diameter < 5.0:
-            echo(f"warning: object {obj_id} is {info.diameter:.3g} mm across: are its units mm? "
-                 f"(tolerance {tol:.2g} mm)")
+            from ..errors import warn
+
+            warn(f"object {obj_id} is {info.diameter:.3g} mm across: are its units mm? (tolerance {tol:.2g} mm)")
         try:
             det = SymmetryDetector(mesh.vertices, mesh.faces, tol, n_points=n_points, seed=seed)
         except ValueError as e:

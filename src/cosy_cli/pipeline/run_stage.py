@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from .. import console
 from ..conf import merge_conf
 from ..errors import CosyError
 from ..io import atomic
@@ -109,8 +110,22 @@ def run_scene(task: dict) -> dict:
 
     task: run_dir, dataset, split, scene_id, confs, source ("gt" | "model" | "json" |
     "candidates"), source_file, coco_images, models_dir, templates_dir, first, last (stage names),
-    force (stages to rerun regardless). Returns {"scene_id", "units": {stage: {"ran", "time_s"}}}.
+    force (stages to rerun regardless). Returns {"scene_id", "units": {stage: {"ran", "time_s"}},
+    "warnings": [...]}: the scene's cosy warnings, caught here (a worker process prints nothing)
+    and issued again by the run (:func:`cosy_cli.console.replay`), which summarises them.
     """
+    import warnings
+
+    from ..errors import CosyWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CosyWarning)
+        result = _run_scene(task)
+    result["warnings"] = console.capture_records(caught)
+    return result
+
+
+def _run_scene(task: dict) -> dict:
     if task.get("single_thread"):
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         try:
@@ -277,9 +292,9 @@ def merge_scene_json(parts: list[Path], out: Path) -> None:
 # the run
 # ------------------------------------------------------------------------------------------
 def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progress: bool) -> list[dict]:
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
-    bar = tqdm(total=len(tasks), desc="scenes", unit="scene", disable=not progress or None, dynamic_ncols=True)
+    bar = progress_bar(total=len(tasks), desc="scenes", unit="scene", enabled=progress)
     results = []
     try:
         if dask_scheduler:
@@ -289,6 +304,7 @@ def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progre
                 futures = client.map(run_scene, tasks, pure=False)
                 for fut in as_completed(futures):
                     results.append(fut.result())
+                    console.replay(results[-1].pop("warnings", []))
                     bar.update(1)
         elif workers > 1:
             import multiprocessing as mp
@@ -299,10 +315,12 @@ def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progre
                 futs = [pool.submit(run_scene, {**t, "single_thread": True}) for t in tasks]
                 for fut in done_first(futs):
                     results.append(fut.result())
+                    console.replay(results[-1].pop("warnings", []))
                     bar.update(1)
         else:
             for t in tasks:
                 results.append(run_scene(t))
+                console.replay(results[-1].pop("warnings", []))
                 bar.update(1)
     finally:
         bar.close()
@@ -394,6 +412,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
         log(f"run: {len(tasks)} scene(s) of {ds.split_dir}, config {config_name}, "
             f"{'dask ' + dask_scheduler if dask_scheduler else f'{workers} worker(s)'} -> {out}")
         results = _execute(tasks, workers, dask_scheduler, progress)
+        console.flush()  # the scene stages' tolerated input problems, one summary per kind
         for stage in SCENE_STAGES:
             rs = [r["units"][stage] for r in results if stage in r["units"]]
             if rs:
@@ -444,6 +463,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
                 ran_any |= ran
                 evals[name] = json.loads((out / "evaluate" / name / "scores.json").read_text())
             stage_times["evaluate"] = {"status": "done" if ran_any else "skipped", "time_s": round(t_ev, 3)}
+            console.flush()
 
     if runs("viz", first, last):
         t0 = time.perf_counter()
@@ -467,6 +487,7 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     manifest["status"] = "done"
     manifest["time_s"] = round(time.perf_counter() - t_start, 3)
     atomic.write_json(manifest_path, manifest)
+    console.flush()
     for line in summary_lines(manifest, out):
         log(line)
     return manifest
@@ -502,9 +523,13 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
     if sv.get("groups"):
         lines += ["", f"single view: {sv['groups']} of {sv['groups_total']} group(s) had one view "
                       "(their candidates passed through as predictions)"]
-    lines.append("")
-    if (out / "refine" / "predictions.csv").is_file():
-        lines.append(f"final predictions: {out / 'refine' / 'predictions.csv'}")
-    if (out / "report.html").is_file():
-        lines.append(f"report: {out / 'report.html'}")
+    lines += ["", wrote_line(out)]
     return lines
+
+
+def wrote_line(out: Path) -> str:
+    """The run's last line: what it wrote where (the final predictions, the report)."""
+    made = [rel for rel in ("refine/predictions.csv", "report.html") if (out / rel).is_file()]
+    return (f"run: wrote {out}" + (f" (final predictions: {made[0]}" + "".join(f", {m}" for m in made[1:]) + ")"
+                                   if "refine/predictions.csv" in made else f" ({', '.join(made)})" if made else "")
+            + "; run.json lists every stage")

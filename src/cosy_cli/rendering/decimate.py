@@ -9,7 +9,8 @@ everything else keep the original mesh: only :class:`~cosy_cli.rendering.SceneRe
 The copy is cached under ``$COSY_CACHE_DIR/meshes`` (default ``$XDG_CACHE_HOME/cosy/meshes``,
 else ``~/.cache/cosy/meshes``) as ``<sha1 of the mesh's arrays>.npz``, written atomically, so the
 decimation runs once per mesh and machine; in a process it is also kept in memory. The first use
-of a decimated copy in a process says so once (a :func:`~cosy_cli.errors.warn` line).
+of a decimated copy in a process says so once, an internal step shown with --verbose only
+(:func:`cosy_cli.console.info`).
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ def _build(mesh, arrays: dict[str, np.ndarray]):
 def render_copy(mesh, max_faces: int | None = MAX_RENDER_FACES, *, use_cache: bool = True):
     """``mesh`` itself when it has at most ``max_faces`` faces (or max_faces is None), else a
     decimated copy of about ``max_faces`` faces for rendering (see the module docstring)."""
-    from ..errors import warn
+    from ..console import info
     from ..io.atomic import atomic_path
 
     if max_faces is None or len(mesh.faces) <= max_faces:
@@ -162,8 +163,8 @@ def render_copy(mesh, max_faces: int | None = MAX_RENDER_FACES, *, use_cache: bo
     copy = _build(mesh, arrays)
     _memo[key] = copy
     src = mesh.metadata.get("file_path")
-    warn(f"{len(mesh.faces):,} faces: rendering a decimated copy with {len(copy.faces):,} faces "
-         f"({'cached' if cached else 'written to'} {path}); poses and metrics use the full mesh", path=src)
+    info(f"{src + ': ' if src else ''}{len(mesh.faces):,} faces: rendering a decimated copy with {len(copy.faces):,} faces "
+         f"({'cached' if cached else 'written to'} {path}); poses and metrics use the full mesh")
     return copy
 
 

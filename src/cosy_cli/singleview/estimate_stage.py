@@ -495,7 +495,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     ``verify_top`` > 0). keep_steps: also return the poses after every step (``summary["steps"]``,
     for benchmarks).
     """
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     from ..objects import ObjectDatabase
 
@@ -533,8 +533,10 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             used_scorer = scorer_model
             run_conf["scorer"] = True
         else:
-            log("estimate: warning: --scorer is used only where template hypotheses are verified by rendering "
-                "(coarse templates, verify_top > 0): ignored")
+            from ..errors import warn
+
+            warn("--scorer is used only where template hypotheses are verified by rendering "
+                 "(coarse templates, verify_top > 0): ignored")
     inputs = _inputs_doc(ds, split, scene_ids, detections, models_dir, used_coarse, used_refiner, used_scorer)
 
     if not keep_steps and reuse_existing_file(out, doc_path, "estimate", overwrite, run_conf, inputs, log):
@@ -570,7 +572,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     rows_T, rows_meta, timing, steps, rows_alt = [], [], [], {}, []
     skipped_boxes = 0
     try:
-        for sid, im_id in tqdm(images, desc="estimate", unit="image", disable=not progress, dynamic_ncols=True):
+        for sid, im_id in progress_bar(images, desc="estimate", unit="image", enabled=progress):
             idx = groups.get((sid, im_id))
             if idx is None:
                 timing.append({"scene_id": sid, "im_id": im_id, "detections": 0, "time_s": 0.0})

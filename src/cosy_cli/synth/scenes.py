@@ -368,7 +368,7 @@ def write_split(split_dir: Path, n_scenes: int, n_views: int, n_objects: int, *,
     targets (columns scene_id, im_id, obj_id, inst_count) of all images."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     from ..rendering import SceneRenderer
 
@@ -376,7 +376,7 @@ def write_split(split_dir: Path, n_scenes: int, n_views: int, n_objects: int, *,
     meshes = objs.object_meshes()
     meshes[TABLE_ID] = table_mesh()
     rows: list[dict] = []
-    bar = tqdm(total=n_scenes * n_views, desc=f"synth {split}", unit="img", disable=not progress, leave=False)
+    bar = progress_bar(total=n_scenes * n_views, desc=f"synth {split}", unit="img", enabled=progress)
     renderer = SceneRenderer(meshes, width, height, znear=10.0, zfar=20_000.0, smooth=True)
     try:
         with ThreadPoolExecutor(max_workers=2, thread_name_prefix="synth-write") as pool:  # png encoding frees the GIL

@@ -16,7 +16,7 @@ each checkpoint and at the end) and ``loss.png`` (redrawn at each checkpoint).
   :func:`stop_on_sigterm`);
 - :func:`load_run`, :func:`write_model_card`: the export side.
 
-Heavy imports (torch, tqdm, matplotlib) happen inside the functions.
+Heavy imports (torch, matplotlib) happen inside the functions.
 """
 
 from __future__ import annotations
@@ -136,7 +136,9 @@ def select_device(conf: dict, log: Callable[[str], None] = print):
     torch.set_num_threads(os.cpu_count() or 1)
     want_cuda = conf["device"] == "cuda"
     if want_cuda and not torch.cuda.is_available():
-        log("warning: --device cuda but no CUDA device is available: training on the CPU")
+        from ..errors import warn
+
+        warn("--device cuda but no CUDA device is available: training on the CPU")
     device = torch.device("cuda" if want_cuda and torch.cuda.is_available() else "cpu")
     torch.manual_seed(conf["seed"])
     return device
@@ -330,7 +332,7 @@ def run_loop(out: str | Path, conf: dict, record: dict, *, step: int, samples: i
     ``plot(out)`` is drawn after each checkpoint. cleanup(): called when the loop ends, however.
     ``sigterm``: SIGTERM saves a checkpoint like Ctrl-C. A KeyboardInterrupt is re-raised after
     the checkpoint is saved."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     out = Path(out)
     ckpt_path = out / CHECKPOINT
@@ -356,8 +358,8 @@ def run_loop(out: str | Path, conf: dict, record: dict, *, step: int, samples: i
     lr = learning_rate(conf, step)
     term = {"stop": False}  # set by SIGTERM: stop after the current step
     restore_term = stop_on_sigterm(term) if sigterm else (lambda: None)
-    bar = tqdm(total=iterations, initial=min(step, iterations), desc=f"train {conf['kind']}", unit="step",
-               disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(total=iterations, initial=min(step, iterations), desc=f"train {conf['kind']}", unit="step",
+                       enabled=progress, leave=True)
     try:
         while step < iterations:
             t0 = time.time()

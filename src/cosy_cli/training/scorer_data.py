@@ -244,14 +244,14 @@ def write_shards(models_dir, templates_dir, K, image_size, conf: dict, folder: P
                  progress: bool = True):
     """Write the missing shards of ``indices`` into ``folder`` (``workers`` processes), for the
     objects of ``models_dir`` and their templates in ``templates_dir``."""
-    from tqdm import tqdm
+    from ..console import progress as progress_bar
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     todo = [i for i in indices if not shard_path(folder, i).is_file()]
     if not todo:
         return
-    bar = tqdm(total=len(todo), desc="scorer data", unit="shard", disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(total=len(todo), desc="scorer data", unit="shard", enabled=progress)
     try:
         if workers <= 1:
             from ..objects import ObjectDatabase

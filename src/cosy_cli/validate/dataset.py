@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import console
 from ..errors import CosyError, CosyWarning, warn
 from ..io import bop, images
 from ..io.dataset import DEPTH_SCALE_RTOL, BopDataset, depth_vs_gt, pp_central, pp_outside
@@ -71,6 +72,9 @@ class ValidationReport:
     split: str
     problems: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)  # tolerated (repaired or approximate), one line each
+    # the same as {"text", "record"} (see cosy_cli.console.capture_records): the CLI summarises the
+    # tolerated input problems that recur file after file (rotations repaired per scene_gt.json)
+    warning_records: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # worth saying, not wrong (e.g. no GT in a test split)
     n_scenes: int = 0
     n_images: int = 0  # image ids in the scene_camera files
@@ -111,7 +115,7 @@ class ValidationReport:
         if not self.ok:
             result = f"{len(self.problems)} problem line(s)" + (f" and {warned}" if nw else "") + ", listed on stderr"
         else:
-            result = f"OK, {warned} (listed on stderr)" if nw else "OK"
+            result = f"OK, {warned} (on stderr)" if nw else "OK"
         lines = [
             f"dataset:   {self.root}",
             f"split:     {self.split}",
@@ -392,7 +396,7 @@ class _Validator:
 
     # ---- models --------------------------------------------------------------------------
     def check_models(self) -> None:
-        from tqdm import tqdm
+        from ..console import progress as progress_bar
 
         ds, p, rep = self.ds, self.p, self.rep
         if not ds.models_dir.is_dir():
@@ -407,8 +411,7 @@ class _Validator:
         self.objects = {}
         rep.n_objects = len(infos)
         rep.n_symmetric = sum(1 for i in infos.values() if len(i.symmetries_discrete) or i.symmetries_continuous)
-        for obj_id, info in tqdm(infos.items(), desc="objects", unit="obj", disable=None if self.progress else True,
-                                 leave=False):
+        for obj_id, info in progress_bar(infos.items(), total=len(infos), desc="objects", unit="obj", enabled=bool(self.progress)):
             where = f"object {obj_id}"
             model = None
             try:
@@ -466,7 +469,7 @@ class _Validator:
 
     # ---- scenes ---------------------------------------------------------------------------
     def check_scenes(self) -> None:
-        from tqdm import tqdm
+        from ..console import progress as progress_bar
 
         try:
             self.scene_ids = self.ds.scene_ids
@@ -474,7 +477,7 @@ class _Validator:
             self.p.error(e)
             return
         self.rep.n_scenes = len(self.scene_ids)
-        for scene_id in tqdm(self.scene_ids, desc="scenes", unit="scene", disable=None if self.progress else True):
+        for scene_id in progress_bar(self.scene_ids, desc="scenes", unit="scene", enabled=bool(self.progress)):
             self.check_scene(scene_id)
         if self.depth_scale_off:
             path, im, ratio, n_off, n, scale = self.depth_scale_off[0]
@@ -881,11 +884,8 @@ def validate_dataset(root: str | Path, split: str = "test", split_type: str | No
         v.check_models()
         v.check_scenes()
         v.check_targets()
-    for w in caught:
-        if issubclass(w.category, CosyWarning):
-            rep.warnings.append(str(w.message))
-        else:  # not ours: passed on as they came
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    rep.warning_records = console.capture_records(caught)  # passes on the warnings that are not ours
+    rep.warnings = [w["text"] for w in rep.warning_records]
     rep.problems = probs.finish()
     rep.seconds = time.perf_counter() - t0
     return rep

@@ -121,9 +121,9 @@ def main(run_dir: str | Path, out: str | Path | None = None, scene_ids=None, ove
     ds = BopDataset(run["dataset"], run["split"])
     bar = None
     if progress and tasks:
-        from tqdm import tqdm
+        from ..console import progress as progress_bar
 
-        bar = tqdm(total=len(tasks), desc="viz", unit="figure", leave=False, disable=None)
+        bar = progress_bar(total=len(tasks), desc="viz", unit="figure")
     with MeshRenderer(ds) as mr:
         for s, g in tasks:
             name = figure_name(s, g)

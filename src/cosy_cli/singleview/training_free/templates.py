@@ -509,13 +509,13 @@ def _open_renderer(objs):
 def build_templates(db, conf: str | Mapping | None = None, obj_ids: Sequence[int] | None = None, *,
                     progress: bool = True, model_sha1: Mapping[int, str] | None = None) -> TemplateSet:
     """Templates of the objects of ``db`` (an ObjectDatabase; all objects or ``obj_ids``)."""
-    from tqdm import tqdm
+    from ...console import progress as progress_bar
 
     conf = resolve_conf(conf)
     objs = [db[o] for o in (db.obj_ids if obj_ids is None else obj_ids)]
     out = {}
     with _open_renderer(objs) as ren:
-        for o in tqdm(objs, desc="templates", unit="object", disable=not progress or None, leave=False):
+        for o in progress_bar(objs, desc="templates", unit="object", enabled=progress):
             sha = (model_sha1 or {}).get(o.obj_id) or file_sha1(o.mesh_path)
             out[o.obj_id] = build_object_templates(ren, o, conf, sha)
     return TemplateSet(out, conf)
@@ -538,7 +538,7 @@ def main(conf: str | Mapping | None, models_dir: str | Path, out: str | Path, ov
     atomically (an interrupted build resumes). Other settings than those of an existing ``out``
     are refused unless ``overwrite`` (which rebuilds everything). Returns ``out``."""
     from ...objects.database import ObjectDatabase
-    from tqdm import tqdm
+    from ...console import progress as progress_bar
 
     t_start = time.perf_counter()
     conf = resolve_conf(conf)
@@ -583,7 +583,7 @@ def main(conf: str | Mapping | None, models_dir: str | Path, out: str | Path, ov
     resolved = str(models_dir.resolve())
     if todo:
         with _open_renderer([db[o] for o in todo]) as ren:
-            for o in tqdm(todo, desc="templates", unit="object", disable=not progress or None, leave=False):
+            for o in progress_bar(todo, desc="templates", unit="object", enabled=progress):
                 t0 = time.perf_counter()
                 t = build_object_templates(ren, db[o], conf, model_sha[o])
                 t.save(out / _npz_name(o))
