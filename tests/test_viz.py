@@ -101,6 +101,8 @@ def test_figures_and_report(run):
     index = json.loads((run / "figures" / "index.json").read_text())
     assert index["scene_000001_group_000.png"]["views_placed"] == 8
     assert index["scene_000002_group_000.png"]["refined"] is False
+    # 8 objects on the sample scenes' ground plane: the top view looks down its normal
+    assert index["scene_000001_group_000.png"]["top_view_up"] == "support plane"
     # the refined objects re-projected through the recovered cameras cover the GT visible masks
     assert out["mask_iou_mean"]["scene_000001_group_000.png"] > 0.7
 
