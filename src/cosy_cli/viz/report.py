@@ -266,9 +266,11 @@ def write_report(run_dir: str | Path, figures: list[Path], out_html: str | Path 
     if figs:
         body.append("<p class=\"meta\">Per group of views. Row 1: each view with its single-view candidates "
                     "(contours of their silhouettes, coloured by the physical object they were matched to; red dashed: "
-                    "discarded). Row 2: the refined scene re-projected through each recovered camera. Bottom: top view "
-                    "of the recovered cameras and objects (mm), ground truth dashed (aligned through the gauge camera)."
-                    " Click a figure for full size.</p>")
+                    "discarded). Row 2: the refined scene re-projected through each recovered camera. Bottom: the "
+                    "recovered cameras and objects seen from above, looking down the normal of the plane the objects "
+                    "rest on, or down the cameras' mean up when no such plane is found (the plot's title says which), "
+                    "in mm from the gauge camera; ground truth dashed (aligned through the gauge camera). "
+                    "Click a figure for full size.</p>")
         toc = " &middot; ".join(f"<a href=\"#fig{k}\">{_e(f.stem)}</a>" for k, f in enumerate(figs))
         body.append(f"<p>{toc}</p>")
         for k, f in enumerate(figs):
