@@ -212,3 +212,13 @@ def test_camera_labels_helpers():
     assert F._id_list([3, 4]) == "3, 4" and F._id_list([]) == ""
     pts = [np.array([0.0, 0]), np.array([5.0, 0]), np.array([100.0, 0]), np.array([3.0, 4])]
     assert F._clusters(pts, 10.0) == [[0, 1, 3], [2]]
+
+
+def test_metrics_table_compares_values_as_shown():
+    # equal to 3 decimals: neither is bold, and the difference is +0.000 (not a red -0.000)
+    html = viz.report.metrics_table({"single view": {"auc_adds": 0.41404, "recall_adds_0.1d": 0.5},
+                                     "multi-view": {"auc_adds": 0.41396, "recall_adds_0.1d": 0.6}})
+    row = next(r for r in html.splitlines() if "auc_adds" in r)
+    assert "better" not in row and "neg" not in row and "+0.000" in row and "-0.000" not in row
+    row = next(r for r in html.splitlines() if "recall_adds_0.1d" in r)
+    assert row.count("better") == 1 and 'class="num pos">+0.100' in row

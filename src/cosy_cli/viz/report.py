@@ -107,7 +107,8 @@ def metrics_table(scores: dict[str, dict]) -> str:
     rows = [f"<tr><th>metric</th>{head}" + (f"<th>{_e(cols[-1])} &minus; {_e(cols[-2])}</th>" if diff else "")
             + "</tr>"]
     for k, label in keys:
-        vals = [_num(scores[c].get(k)) for c in cols]
+        # compared as shown (3 decimals): no bold winner or signed difference for a tie on the page
+        vals = [None if _num(scores[c].get(k)) is None else round(_num(scores[c].get(k)), 3) for c in cols]
         best = max((v for v in vals if v is not None), default=None)
         cells = []
         for v in vals:
@@ -120,7 +121,7 @@ def metrics_table(scores: dict[str, dict]) -> str:
             if a is None or b is None:
                 row += '<td class="num">&mdash;</td>'
             else:
-                d = b - a
+                d = round(b - a, 3) + 0.0  # + 0.0: no "-0.000"
                 row += f'<td class="num {"pos" if d > 0 else "neg" if d < 0 else ""}">{d:+.3f}</td>'
         rows.append(row + "</tr>")
     return "<table>\n" + "\n".join(rows) + "\n</table>"
