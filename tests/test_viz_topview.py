@@ -42,6 +42,16 @@ def box(x, y, size, yaw_deg, n=6) -> np.ndarray:
     return pts @ R.T + [x, y, 0]
 
 
+def ellipsoid(x, y, radii, yaw_deg, n=24) -> np.ndarray:
+    """Points on an ellipsoid (semi-axes a, b, c) resting on the table at (x, y), turned by yaw."""
+    a, b, c = radii
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, n, endpoint=False), np.linspace(0, np.pi, n))
+    pts = np.c_[(a * np.sin(v) * np.cos(u)).ravel(), (b * np.sin(v) * np.sin(u)).ravel(), (c * np.cos(v)).ravel() + c]
+    t = np.radians(yaw_deg)
+    R = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
+    return pts @ R.T + [x, y, 0]
+
+
 def in_camera0(cams: list[np.ndarray], objects: list[np.ndarray]):
     """The scene as the pipeline recovers it: world = camera 0's frame. Returns (cams, objects,
     the table's normal, a rotation taking scene directions to that world)."""
@@ -84,6 +94,17 @@ def test_oblique_cameras_over_a_table_look_down_the_table_normal():
     cam_xy = np.array([T[:3, 3] for T in cams_w]) @ f.P.T
     assert np.all(np.linalg.norm(cam_xy - centres.mean(0), axis=1) > 400)
     assert "support plane" in f.describe()
+
+
+def test_cameras_looking_straight_down_find_the_table():
+    # their up (-y) is nearly horizontal: the lowest points along it are the sides of round objects
+    # (at half their height), not their bases
+    objs = [ellipsoid(x, y, (s[0] / 2, s[1] / 2, s[2] / 2), yaw) for (x, y), s, yaw in TABLE]
+    cams = [camera(az, 88, 600) for az in (-90, -80)]
+    cams_w, objs_w, up_true, _ = in_camera0(cams, objs)
+    f = tv.top_view_frame(cams_w, objs_w)
+    assert f.source == tv.SUPPORT_PLANE and angle_deg(f.up, up_true) < 1.0
+    check_axes(f)
 
 
 def test_camera_looking_ahead_gets_a_view_from_above_not_a_front_view():

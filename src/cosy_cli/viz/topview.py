@@ -7,9 +7,11 @@ The top view instead looks down the scene's up direction, estimated as
 1. the normal of the plane the objects rest on, when one can be found: the lowest points of the
    objects (their model points posed in the world, lowest along the current estimate of up) are
    fitted with a plane robustly (every triplet, then a least-squares fit of the inliers), and the
-   estimate is refined with that plane's normal a few times. The plane is kept when at least
-   three objects, half of them or more, rest on it, their contacts span an area (not a line), and
-   every camera is above it (the cameras look at the objects from above the table);
+   estimate is refined with that plane's normal a few times, starting from the cameras' up and
+   from their backward direction (cameras that look straight down). The plane is kept when at least
+   three objects, half of them or more, rest on it, their contacts span an area (not a line),
+   every camera is above it (the cameras look at the objects from above the table) and at most a
+   fifth of the objects reach below it;
 2. else the cameras' mean up direction (OpenCV cameras: -y of each camera in the world), which is
    the true vertical for cameras held upright and level, and tilted by the pitch of cameras that
    look down;
@@ -154,6 +156,10 @@ def support_plane(objects_world: list[np.ndarray], cam_centres: np.ndarray, up0:
         # the cameras look at the objects from above
         if len(C) and not np.all((C - p0) @ nrm > t):
             return None
+        # nothing rests under a support: at most a fifth of the objects reach below it (pose errors)
+        below = sum(float(np.min((np.asarray(X).reshape(-1, 3) - p0) @ nrm)) < -2 * t for X in objects_world)
+        if below > 0.2 * len(objects_world):
+            return None
         result = (nrm, p0, k)
         if np.dot(nrm, up) > np.cos(np.radians(0.5)):
             break
@@ -169,7 +175,15 @@ def top_view_frame(cam_T: list[np.ndarray], objects_world: list[np.ndarray] | No
     objects_world = list(objects_world or [])
     C = np.array([np.asarray(T)[:3, 3] for T in cam_T]).reshape(-1, 3)
     up, source = cameras_up(cam_T, ref)
-    plane = support_plane(objects_world, C, up)
+    # the lowest points are taken along a first guess of up: the cameras' up, and their mean
+    # backward direction (for cameras looking straight down, whose up is horizontal); the plane
+    # more objects rest on wins
+    plane = None
+    back = -np.mean([np.asarray(T)[:3, 2] for T in cam_T], axis=0) if cam_T else np.zeros(3)
+    for up0 in [up] + ([back] if np.linalg.norm(back) > 0.3 else []):
+        p = support_plane(objects_world, C, up0)
+        if p is not None and (plane is None or p[2] > plane[2]):
+            plane = p
     point = None
     n_on = 0
     if plane is not None:
