@@ -916,7 +916,7 @@ def build_group_figure(data: GroupData, mr: MeshRenderer, *, max_cols: int = 8, 
         ncol = 2 if fig_w >= 8 and len(entries) > 4 else 1
         leg_h = _legend_height(len(lines), len(entries), ncol)
         bottom_heights = ([top_h, 0.45] if show_top else []) + [leg_h]
-    heights = [panel_h] * (blocks * nrows_block) + [0.15] + bottom_heights
+    heights = [panel_h] * (blocks * nrows_block) + ([0.15] if show_top else []) + bottom_heights  # room: title
     gap = 0.28  # inches between rows (their titles)
     fig_h = sum(heights) + gap * (len(heights) - 1) + 0.82
     fig = Figure(figsize=(fig_w, fig_h), dpi=dpi)
