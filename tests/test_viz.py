@@ -101,6 +101,8 @@ def test_figures_and_report(run):
     index = json.loads((run / "figures" / "index.json").read_text())
     assert index["scene_000001_group_000.png"]["views_placed"] == 8
     assert index["scene_000002_group_000.png"]["refined"] is False
+    # 8 objects on the sample scenes' ground plane: the top view looks down its normal
+    assert index["scene_000001_group_000.png"]["top_view_up"] == "support plane"
     # the refined objects re-projected through the recovered cameras cover the GT visible masks
     assert out["mask_iou_mean"]["scene_000001_group_000.png"] > 0.7
 
@@ -180,3 +182,43 @@ def test_bad_input(run, tmp_path):
     assert res.exit_code == 2 and "run folder not found" in res.output
     res = CliRunner().invoke(cli, ["viz", "--run", str(run), "--scene", "9"])
     assert res.exit_code == 2 and "scene 9 is not a scene of this run" in res.output
+
+
+def test_palette_png_keeps_the_figure_colours():
+    """A figure too large for MAX_PNG_BYTES is stored with 256 colours: the objects' colours (legend
+    boxes, contours), white and black come back exactly, whatever colours the photos hold."""
+    from PIL import Image
+
+    from cosy_cli.viz import figures as F
+
+    rng = np.random.default_rng(0)
+    img = np.full((240, 480, 3), 255, dtype=np.uint8)
+    img[:, 240:] = rng.integers(0, 256, (240, 240, 3))  # a "photo" of every colour
+    img[:, 240:, 0] = np.linspace(0, 255, 240).astype(np.uint8)  # and smooth shades
+    colors = F.PALETTE + [F.CAMERA_COLOR, F.GT_COLOR, F.DISCARDED_COLOR, "#000000"]
+    for k, c in enumerate(colors):
+        img[10 + 10 * (k // 4): 18 + 10 * (k // 4), 10 + 20 * (k % 4): 28 + 20 * (k % 4)] = np.round(F._rgb01(c) * 255)
+    out = np.asarray(F._quantize(Image.fromarray(img)).convert("RGB"))
+    for k, c in enumerate(colors):
+        patch = out[10 + 10 * (k // 4): 18 + 10 * (k // 4), 10 + 20 * (k % 4): 28 + 20 * (k % 4)]
+        assert (patch == np.round(F._rgb01(c) * 255)).all(), c
+    assert (out[200:, :200] == 255).all()  # white stays white
+
+
+def test_camera_labels_helpers():
+    from cosy_cli.viz import figures as F
+
+    assert F._id_list([10, 1, 2, 6, 7, 8, 9]) == "1, 2, 6–10"
+    assert F._id_list([3, 4]) == "3, 4" and F._id_list([]) == ""
+    pts = [np.array([0.0, 0]), np.array([5.0, 0]), np.array([100.0, 0]), np.array([3.0, 4])]
+    assert F._clusters(pts, 10.0) == [[0, 1, 3], [2]]
+
+
+def test_metrics_table_compares_values_as_shown():
+    # equal to 3 decimals: neither is bold, and the difference is +0.000 (not a red -0.000)
+    html = viz.report.metrics_table({"single view": {"auc_adds": 0.41404, "recall_adds_0.1d": 0.5},
+                                     "multi-view": {"auc_adds": 0.41396, "recall_adds_0.1d": 0.6}})
+    row = next(r for r in html.splitlines() if "auc_adds" in r)
+    assert "better" not in row and "neg" not in row and "+0.000" in row and "-0.000" not in row
+    row = next(r for r in html.splitlines() if "recall_adds_0.1d" in r)
+    assert row.count("better") == 1 and 'class="num pos">+0.100' in row

@@ -10,9 +10,11 @@ One PNG per group (:func:`group_figure`):
   the image and the contours of each object's visible region; views that could not be placed are
   dimmed and marked; the row is left out when the scene has no refine output;
 * row 3 - a top view of the recovered cameras (frusta, labelled by im_id) and objects (footprints:
-  convex hull of the model seen from above, labelled by obj_id) in the group's world frame (mm),
-  with the ground truth aligned through the gauge camera (dashed) when the dataset has it, and a
-  legend with the group's numbers.
+  convex hull of the model seen from above, labelled by obj_id), looking down the scene's up
+  direction (the normal of the plane the objects rest on, else the cameras' mean up; the title
+  says which, see :mod:`cosy_cli.viz.topview`), in mm with the gauge camera at the origin, the
+  gauge camera's right along +x; with the ground truth aligned through the gauge camera (dashed)
+  when the dataset has it, and a legend with the group's numbers.
 
 Views wrap after ``max_cols`` per row (a candidates row above its refined row, chunk by chunk).
 Images are downscaled to the panel size, so a figure of 8 views stays under ~1.5 MB (it is
@@ -37,6 +39,7 @@ from ..io import atomic, bop
 from ..io.dataset import BopDataset
 from ..lifetime import Closing
 from ..pipeline.layout import MANIFEST, RUN_FORMAT, scene_dir
+from .topview import SUPPORT_PLANE, top_view_frame
 
 MAX_PNG_BYTES = 1_500_000
 PANEL_WIDTH_IN = 1.75  # inches per view panel
@@ -275,11 +278,18 @@ def _load_group(run_dir: Path, scene_id: int, group_id: int, dataset: BopDataset
                             "T_world_obj": np.asarray(o["T_world_obj"], dtype=np.float64),
                             "n_candidates": int(o.get("n_candidates", 0)),
                             "reprojection_error_px": o.get("reprojection_error_px"),
-                            "merged_object_ids": [int(m) for m in o.get("merged_object_ids", [])]})
-        # candidates of objects merged by refine take the colour of the object they were merged into
+                            "merged_object_ids": [int(m) for m in o.get("merged_object_ids", [])],
+                            "rematched": bool(o.get("rematched", False)),
+                            "cand_ids": [int(c) for c in o.get("cand_ids", [])]})
+        # candidates of objects merged by refine take the colour of the object they were merged into;
+        # candidates match discarded and refine re-matched into an object take that object's colour
         for o in objects:
             for m in o["merged_object_ids"]:
                 object_id[(object_id == m) & in_group] = o["object_id"]
+            if o["rematched"]:
+                ids = np.asarray(o["cand_ids"], dtype=np.int64)
+                ids = ids[(ids >= 0) & (ids < n)]
+                object_id[ids[in_group[ids]]] = o["object_id"]
 
     views = []
     T_all = cands.T_cam_obj
@@ -580,40 +590,6 @@ def _blend(img: np.ndarray, render: ViewRender, alpha: float = 0.55) -> np.ndarr
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
-def _up_and_axes(cam_T: list[np.ndarray], obj_T: list[np.ndarray]):
-    """An 'up' direction of the group's world and two horizontal axes (e1, e2) for a top view.
-
-    Up: the normal of the plane through the object centres (objects rest on a common support)
-    when it is well defined, else the opposite of the cameras' mean viewing direction, else the
-    first camera's -y; oriented towards the cameras. e1: the first camera's x projected on the
-    horizontal plane; e2 = up x e1 (so e1, e2 is a right-handed view from above)."""
-    C = np.array([T[:3, 3] for T in cam_T]) if cam_T else np.zeros((0, 3))
-    view_dirs = np.array([T[:3, 2] for T in cam_T]) if cam_T else np.zeros((0, 3))
-    O = np.array([T[:3, 3] for T in obj_T]) if obj_T else np.zeros((0, 3))
-    up = None
-    if len(O) >= 3:
-        c = O - O.mean(0)
-        _, sv, vt = np.linalg.svd(c, full_matrices=False)
-        if len(sv) == 3 and sv[1] > 1e-6 and sv[2] < 0.35 * sv[1]:
-            up = vt[2]
-    mean_dir = view_dirs.mean(0) if len(view_dirs) else np.zeros(3)
-    if up is None:
-        up = -mean_dir if np.linalg.norm(mean_dir) > 0.3 else (-cam_T[0][:3, 1] if cam_T else np.array([0, -1.0, 0]))
-    up = up / np.linalg.norm(up)
-    centre = O.mean(0) if len(O) else np.zeros(3)
-    if len(C) and np.dot(C.mean(0) - centre, up) < 0:
-        up = -up
-    elif not len(C) and np.dot(mean_dir, up) > 0:
-        up = -up
-    x = cam_T[0][:3, 0] if cam_T else np.array([1.0, 0, 0])
-    e1 = x - np.dot(x, up) * up
-    if np.linalg.norm(e1) < 1e-6:
-        e1 = np.cross(up, [0, 0, 1.0]) if abs(up[2]) < 0.9 else np.cross(up, [1.0, 0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
-    return up, e1, e2
-
-
 def _footprint(points_world: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Convex hull (closed polygon (k, 2)) of points projected by P (2, 3)."""
     from scipy.spatial import ConvexHull, QhullError
@@ -638,14 +614,47 @@ def _frustum_lines(T_world_cam, K, size, depth, P):
     return c, q
 
 
-def _draw_top_view(ax, data: GroupData, mr: MeshRenderer):
+LABEL_BOX = dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="none", alpha=0.75)
+
+
+def _clusters(points: list[np.ndarray], dist: float) -> list[list[int]]:
+    """Indices of ``points`` grouped greedily: a point joins the first group whose first point is
+    within ``dist``."""
+    groups: list[list[int]] = []
+    for k, p in enumerate(points):
+        for g in groups:
+            if np.linalg.norm(points[g[0]] - p) <= dist:
+                g.append(k)
+                break
+        else:
+            groups.append([k])
+    return groups
+
+
+def _id_list(ids: list[int]) -> str:
+    """'1, 2, 6–10' for [1, 2, 6, 7, 8, 9, 10]."""
+    out, k = [], 0
+    ids = sorted(ids)
+    while k < len(ids):
+        j = k
+        while j + 1 < len(ids) and ids[j + 1] == ids[j] + 1:
+            j += 1
+        out.append(f"{ids[k]}–{ids[j]}" if j >= k + 2 else ", ".join(map(str, ids[k:j + 1])))
+        k = j + 1
+    return ", ".join(out)
+
+
+def _wrap(text: str, width: int) -> str:
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width, break_on_hyphens=False)) or text
+
+
+def _draw_top_view(ax, data: GroupData, mr: MeshRenderer, legend_ax=None):
     cams = {v.im_id: v.T_world_cam for v in data.views if v.T_world_cam is not None}
     views = {v.im_id: v for v in data.views}
     objs = data.objects
     gt_cams, gt_objs = gt_in_group_frame(data)
-    up, e1, e2 = _up_and_axes([cams[i] for i in sorted(cams)] or list(gt_cams.values()),
-                              [o["T_world_obj"] for o in objs] or [T for _, T in gt_objs])
-    P = np.stack([e1, e2])
     pts = []
 
     def model_pts(obj_id):
@@ -654,24 +663,41 @@ def _draw_top_view(ax, data: GroupData, mr: MeshRenderer):
             V = V[np.random.default_rng(0).choice(len(V), 3000, replace=False)]
         return V
 
+    def posed(obj_id, T):
+        return model_pts(obj_id) @ T[:3, :3].T + T[:3, 3]
+
+    # up: the plane the refined objects rest on, else the one the GT objects rest on, else the cameras'
+    cam_ids = sorted(cams) or sorted(gt_cams)
+    cam_list = [cams[i] for i in cam_ids] if cams else [gt_cams[i] for i in cam_ids]
+    ref_id = data.gauge_im_id if data.gauge_im_id in cam_ids else (cam_ids[0] if cam_ids else None)
+    ref = cam_ids.index(ref_id) if ref_id is not None else 0
+    frame3 = top_view_frame(cam_list, [posed(o["obj_id"], o["T_world_obj"]) for o in objs], ref=ref)
+    gt_plane = False
+    if frame3.source != SUPPORT_PLANE and gt_objs:
+        f_gt = top_view_frame(cam_list, [posed(oid, T) for oid, T in gt_objs], ref=ref)
+        if f_gt.source == SUPPORT_PLANE:
+            frame3, gt_plane = f_gt, True
+    P = frame3.P
+
     centres = [o["T_world_obj"][:3, 3] for o in objs] + [T[:3, 3] for _, T in gt_objs]
     centre = np.mean(centres, 0) if centres else np.zeros(3)
     dists = [np.linalg.norm(T[:3, 3] - centre) for T in list(cams.values()) + list(gt_cams.values())]
     depth = 0.18 * (np.median(dists) if dists else 500.0)
 
     for obj_id, T in gt_objs:
-        poly = _footprint(model_pts(obj_id) @ T[:3, :3].T + T[:3, 3], P)
+        poly = _footprint(posed(obj_id, T), P)
         ax.plot(poly[:, 0], poly[:, 1], color=GT_COLOR, lw=0.9, ls=(0, (3, 2)), zorder=2)
         pts.append(poly)
     for o in objs:
         T = o["T_world_obj"]
         color = object_color(o["object_id"])
-        poly = _footprint(model_pts(o["obj_id"]) @ T[:3, :3].T + T[:3, 3], P)
+        poly = _footprint(posed(o["obj_id"], T), P)
         ax.fill(poly[:, 0], poly[:, 1], color=color, alpha=0.45, lw=0, zorder=3)
         ax.plot(poly[:, 0], poly[:, 1], color=color, lw=1.2, zorder=4, path_effects=_outline(1.2))
         c = T[:3, 3] @ P.T
         _label(ax, c[0], c[1], str(o["obj_id"]), color, fontsize=7)
         pts.append(poly)
+    labels = []  # (camera centre in the plot, im_id, placed)
     for i, T in gt_cams.items():
         c, q = _frustum_lines(T, views[i].K, views[i].size, depth, P)
         for k in range(4):
@@ -679,27 +705,37 @@ def _draw_top_view(ax, data: GroupData, mr: MeshRenderer):
         ax.plot(np.r_[q[:, 0], q[0, 0]], np.r_[q[:, 1], q[0, 1]], color=GT_COLOR, lw=0.7, ls=(0, (3, 2)), zorder=2)
         pts.append(np.vstack([c, q]))
         if i not in cams:  # a view the pipeline could not place: only its GT camera is drawn
-            d = c - centre @ P.T
-            p = c + d / (np.linalg.norm(d) + 1e-9) * depth * 0.45
-            ax.text(p[0], p[1], f"{i}\n(not placed)", fontsize=6.5, ha="center", va="center", color=DISCARDED_COLOR,
-                    zorder=6)
-            pts.append(p[None])
+            labels.append((c, i, False))
     for i, T in cams.items():
         c, q = _frustum_lines(T, views[i].K, views[i].size, depth, P)
-        gauge = i == data.gauge_im_id
-        lw = 1.5 if gauge else 1.0
+        lw = 1.5 if i == data.gauge_im_id else 1.0
         for k in range(4):
             ax.plot([c[0], q[k, 0]], [c[1], q[k, 1]], color=CAMERA_COLOR, lw=lw, zorder=5)
         ax.fill(q[:, 0], q[:, 1], color=CAMERA_COLOR, alpha=0.12, lw=0, zorder=4)
         ax.plot(np.r_[q[:, 0], q[0, 0]], np.r_[q[:, 1], q[0, 1]], color=CAMERA_COLOR, lw=lw, zorder=5)
-        # im_id behind the camera, away from the scene
-        c2 = centre @ P.T
+        pts.append(np.vstack([c, q]))
+        labels.append((c, i, True))
+    # im_ids behind the cameras, away from the scene; cameras closer than 1.2 x the frusta's depth share a label
+    c2 = centre @ P.T
+    for members in _clusters([c for c, _, _ in labels], 1.2 * depth):
+        c = np.mean([labels[k][0] for k in members], axis=0)
         d = c - c2
         d = d / (np.linalg.norm(d) + 1e-9)
+        placed = sorted(labels[k][1] for k in members if labels[k][2])
+        lost = sorted(labels[k][1] for k in members if not labels[k][2])
         p = c + d * depth * 0.45
-        ax.text(p[0], p[1], f"{i}" + ("\n(gauge)" if gauge else ""), fontsize=7, ha="center", va="center",
-                color=CAMERA_COLOR, fontweight="bold" if gauge else "normal", zorder=6)
-        pts.append(np.vstack([c, q, p]))
+        if placed:
+            gauge = data.gauge_im_id in placed
+            others = [i for i in placed if i != data.gauge_im_id]
+            text = (f"{data.gauge_im_id} (gauge)" + (", " if others else "") if gauge else "") + _id_list(others)
+            ax.text(p[0], p[1], _wrap(text, 18), fontsize=7, ha="center", va="center", color=CAMERA_COLOR,
+                    fontweight="bold" if gauge else "normal", zorder=6, bbox=LABEL_BOX)
+            pts.append(p[None])
+            p = p + d * depth * 0.45
+        if lost:
+            ax.text(p[0], p[1], _wrap(_id_list(lost), 18) + "\n(not placed)", fontsize=6.5, ha="center",
+                    va="center", color=DISCARDED_COLOR, zorder=6, bbox=LABEL_BOX)
+            pts.append(p[None])
     if pts:
         allp = np.vstack(pts)
         lo, hi = allp.min(0), allp.max(0)
@@ -709,11 +745,13 @@ def _draw_top_view(ax, data: GroupData, mr: MeshRenderer):
     ax.set_aspect("equal", adjustable="box")
     ax.grid(True, lw=0.3, alpha=0.5)
     ax.tick_params(labelsize=7)
-    ax.set_xlabel("x (mm)", fontsize=8)
-    ax.set_ylabel("y (mm)", fontsize=8)
-    frame = ("dataset world frame" if data.known_cameras else
-             f"world = camera {data.gauge_im_id}" if data.gauge_im_id is not None else "world frame")
-    ax.set_title(f"top view ({frame}, seen from above)", fontsize=8.5)
+    cam_name = f"camera {ref_id}" if ref_id is not None else "the camera"
+    ax.set_xlabel(f"to the right of {cam_name}, levelled (mm)", fontsize=7.5)
+    ax.set_ylabel(f"ahead of {cam_name}, levelled (mm)", fontsize=7.5)
+    how = frame3.describe(cam_name, "GT objects" if gt_plane else "objects")
+    origin = ("origin: the dataset's world origin" if data.known_cameras else
+              f"origin: camera {data.gauge_im_id}" if data.gauge_im_id is not None else "origin: the world's origin")
+    ax.set_title(f"top view, {how}\n{origin}", fontsize=8, linespacing=1.25)
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
@@ -721,11 +759,39 @@ def _draw_top_view(ax, data: GroupData, mr: MeshRenderer):
                Patch(facecolor="#999999", alpha=0.6, edgecolor="black", lw=0.5, label="objects (refined)")]
     if gt_cams or gt_objs:
         handles.append(Line2D([], [], color=GT_COLOR, lw=0.9, ls=(0, (3, 2)), label="ground truth"))
-    ax.legend(handles=handles, fontsize=6.5, loc="best", framealpha=0.85)
-    return {"gt_cameras": len(gt_cams), "gt_objects": len(gt_objs)}
+    if legend_ax is None:
+        ax.legend(handles=handles, fontsize=6.5, loc="best", framealpha=0.85)
+    else:  # under the plot, where it hides nothing
+        legend_ax.axis("off")
+        legend_ax.legend(handles=handles, fontsize=6.5, loc="lower center", ncol=len(handles), frameon=False,
+                         handlelength=2.2, columnspacing=1.2, borderaxespad=0.0)
+    return {"gt_cameras": len(gt_cams), "gt_objects": len(gt_objs),
+            "top_view_up": frame3.source + (" (ground truth)" if gt_plane else "")}
 
 
 LINE_IN = 0.2  # inches per text line in the legend panel
+TOP_VIEW_IN = 3.9  # height of the top view's plot (inches)
+TOP_LEGEND_IN = 0.7  # under it: its axis labels and the legend of its line styles
+
+
+def _text_width_in(text: str, size: float) -> float:
+    """Width (inches) of ``text`` in matplotlib's default font at ``size`` points."""
+    from matplotlib.textpath import TextPath
+
+    return TextPath((0, 0), text, size=size).get_extents().width / 72.0 if text.strip() else 0.0
+
+
+def _wrap_lines(text: str, width_in: float, size: float = 7.5) -> list[str]:
+    """``text`` broken at spaces into lines at most ``width_in`` wide (continuations indented)."""
+    out, cur = [], ""
+    for word in text.split(" "):
+        trial = f"{cur} {word}" if cur else ("    " + word if out else word)
+        if cur and _text_width_in(trial, size) > width_in:
+            out.append(cur)
+            cur = "    " + word
+        else:
+            cur = trial
+    return out + [cur]
 
 
 def _info_lines(data: GroupData, ious: list[dict]) -> list[str]:
@@ -735,8 +801,11 @@ def _info_lines(data: GroupData, ious: list[dict]) -> list[str]:
     lines.append(f"scene {data.scene_id}, group {data.group_id}: {len(data.views)} views "
                  f"(im_id {', '.join(map(str, data.im_ids[:12]))}{' ...' if len(data.views) > 12 else ''})")
     if data.matched:
-        lines.append(f"candidates: {n_c}; matched {n_kept} into {len(data.match_objects)} objects, "
-                     f"{n_c - n_kept} discarded (red dashed)")
+        re_ids = {o["object_id"] for o in data.objects if o.get("rematched")}
+        n_re = sum(int(np.isin(v.cand_object, list(re_ids)).sum()) for v in data.views) if re_ids else 0
+        lines.append(f"candidates: {n_c}; matched {n_kept - n_re} into {len(data.match_objects)} objects, "
+                     f"{n_c - n_kept} discarded (red dashed)"
+                     + (f"; refine re-matched {n_re} discarded into {len(re_ids)} objects" if re_ids else ""))
     else:
         lines.append(f"candidates: {n_c} (no match output yet: coloured by label)")
     if data.refined:
@@ -774,6 +843,8 @@ def _legend_entries(data: GroupData) -> list[tuple[str, str]]:
             txt += f", {float(refined[oid]['reprojection_error_px']):.2f} px"
         if data.refined and oid not in refined:
             txt += " (dropped by refine)"
+        elif oid in refined and refined[oid].get("rematched"):
+            txt += " (re-matched)"
         out.append((object_color(oid), txt))
     return out
 
@@ -793,7 +864,8 @@ def _legend_panel(ax, lines: list[str], entries: list[tuple[str, str]], ncol: in
         ax.text(0.02, y, ln, fontsize=7.5, va="top", ha="left", transform=ax.transAxes)
         y -= step
     y -= 0.4 * step
-    ax.text(0.02, y, title, fontsize=7.5, va="top", transform=ax.transAxes, fontweight="bold")
+    ax.text(0.02, y, title if entries else f"{title} none", fontsize=7.5, va="top", transform=ax.transAxes,
+            fontweight="bold")
     y -= step
     per_col = -(-len(entries) // max(ncol, 1)) if entries else 0
     box_w = 0.12 / ax.get_position().width / ax.figure.get_figwidth()  # 0.12 inch
@@ -827,21 +899,28 @@ def build_group_figure(data: GroupData, mr: MeshRenderer, *, max_cols: int = 8, 
     show_top = show_refined and any(v.T_world_cam is not None for v in views)
     blocks = 2 if show_refined else 1
     lines, entries = _info_lines(data, ious), _legend_entries(data)
-    top_h = 3.9
-    top_w = 1.25 * top_h
+    top_h = TOP_VIEW_IN + TOP_LEGEND_IN
+    top_w = 1.25 * TOP_VIEW_IN
     side_w = fig_w - top_w - 0.6
-    side = show_top and side_w >= 5.0
+    side = False
+    if show_top and side_w >= 3.3:  # the legend panel beside the top view, its lines wrapped to fit
+        wrapped = [w for ln in lines for w in _wrap_lines(ln, side_w - 0.25)]
+        longest = max((_text_width_in(t, 7.0) for _, t in entries), default=0.0) + 0.35  # + colour box
+        for ncol in (1, 2):
+            if longest * ncol <= side_w - 0.1 and _legend_height(len(wrapped), len(entries), ncol) <= top_h:
+                side, lines = True, wrapped
+                break
     if side:
-        ncol = 1 if _legend_height(len(lines), len(entries), 1) <= top_h else 2
         bottom_heights = [top_h]
     else:
         ncol = 2 if fig_w >= 8 and len(entries) > 4 else 1
         leg_h = _legend_height(len(lines), len(entries), ncol)
         bottom_heights = ([top_h, 0.45] if show_top else []) + [leg_h]
-    heights = [panel_h] * (blocks * nrows_block) + [0.3] + bottom_heights
-    fig_h = sum(heights) + 0.75
+    heights = [panel_h] * (blocks * nrows_block) + ([0.15] if show_top else []) + bottom_heights  # room: title
+    gap = 0.28  # inches between rows (their titles)
+    fig_h = sum(heights) + gap * (len(heights) - 1) + 0.82
     fig = Figure(figsize=(fig_w, fig_h), dpi=dpi)
-    gs = GridSpec(len(heights), ncols, figure=fig, height_ratios=heights, hspace=0.16, wspace=0.03,
+    gs = GridSpec(len(heights), ncols, figure=fig, height_ratios=heights, hspace=gap / np.mean(heights), wspace=0.03,
                   left=0.035, right=0.995, top=1 - 0.42 / fig_h, bottom=0.4 / fig_h)
     px = int(round(panel_w * dpi * 1.1))
 
@@ -882,14 +961,14 @@ def build_group_figure(data: GroupData, mr: MeshRenderer, *, max_cols: int = 8, 
             "matched": data.matched}
     first = blocks * nrows_block + 1
     title = "objects (colour = physical object found by match):" if data.matched else "labels:"
+    if show_top:
+        rest = side_w if side else max(fig_w - top_w - 0.45, 0.1)
+        bottom = gs[first, :].subgridspec(1, 3, width_ratios=[0.45, top_w, rest], wspace=0.04)
+        slot = bottom[0, 1].subgridspec(2, 1, height_ratios=[TOP_VIEW_IN, TOP_LEGEND_IN], hspace=0.0)
+        info.update(_draw_top_view(fig.add_subplot(slot[0, 0]), data, mr, legend_ax=fig.add_subplot(slot[1, 0])))
     if side:
-        bottom = gs[first, :].subgridspec(1, 3, width_ratios=[0.45, top_w, side_w], wspace=0.04)
-        info.update(_draw_top_view(fig.add_subplot(bottom[0, 1]), data, mr))
         _legend_panel(fig.add_subplot(bottom[0, 2]), lines, entries, ncol, top_h, title)
     else:
-        if show_top:
-            bottom = gs[first, :].subgridspec(1, 3, width_ratios=[0.45, top_w, max(fig_w - top_w - 0.45, 0.1)])
-            info.update(_draw_top_view(fig.add_subplot(bottom[0, 1]), data, mr))
         leg = gs[len(heights) - 1, :].subgridspec(1, 2, width_ratios=[0.2, fig_w - 0.2], wspace=0.0)
         _legend_panel(fig.add_subplot(leg[0, 1]), lines, entries, ncol, bottom_heights[-1], title)
     what = "single-view candidates, refined scene and recovered cameras" if show_refined else "single-view candidates"
@@ -902,6 +981,23 @@ def build_group_figure(data: GroupData, mr: MeshRenderer, *, max_cols: int = 8, 
     info["ious"] = ious
     info["render_s"] = t_render
     return fig, info
+
+
+def _quantize(im):
+    """A 256-colour palette image of ``im`` (RGB) whose palette holds the figure's own colours
+    exactly (objects, cameras, ground truth, black, white), so legend boxes and contours keep their
+    colours; the rest of the palette adapts to the photos (dithered)."""
+    from PIL import Image
+
+    fixed = list(dict.fromkeys(PALETTE + [DISCARDED_COLOR, CAMERA_COLOR, GT_COLOR, "#000000", "#ffffff"]))
+    n = 256 - len(fixed)
+    exact = np.array([np.round(_rgb01(c) * 255) for c in fixed])
+    adaptive = np.array(im.quantize(colors=n, method=Image.Quantize.MEDIANCUT).getpalette()[:3 * n]).reshape(-1, 3)
+    # adaptive colours close to a fixed one would take its pixels (PIL looks colours up coarsely)
+    far = np.abs(adaptive[:, None, :] - exact[None]).max(-1).min(1) > 12
+    holder = Image.new("P", (1, 1))
+    holder.putpalette([int(v) for v in np.vstack([exact, adaptive[far]]).ravel()])
+    return im.quantize(palette=holder, dither=Image.Dither.FLOYDSTEINBERG)
 
 
 def save_png(fig, out_png: str | Path, *, dpi: int = DPI, max_bytes: int = MAX_PNG_BYTES) -> Path:
@@ -923,7 +1019,7 @@ def save_png(fig, out_png: str | Path, *, dpi: int = DPI, max_bytes: int = MAX_P
         for scale in (1.0, 0.85, 0.7, 0.55):
             im2 = im if scale == 1.0 else im.resize((int(im.width * scale), int(im.height * scale)), Image.LANCZOS)
             b = io.BytesIO()
-            im2.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(b, format="PNG", optimize=True)
+            _quantize(im2).save(b, format="PNG", optimize=True)
             data = b.getvalue()
             if len(data) <= max_bytes:
                 break

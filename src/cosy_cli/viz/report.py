@@ -107,7 +107,8 @@ def metrics_table(scores: dict[str, dict]) -> str:
     rows = [f"<tr><th>metric</th>{head}" + (f"<th>{_e(cols[-1])} &minus; {_e(cols[-2])}</th>" if diff else "")
             + "</tr>"]
     for k, label in keys:
-        vals = [_num(scores[c].get(k)) for c in cols]
+        # compared as shown (3 decimals): no bold winner or signed difference for a tie on the page
+        vals = [None if _num(scores[c].get(k)) is None else round(_num(scores[c].get(k)), 3) for c in cols]
         best = max((v for v in vals if v is not None), default=None)
         cells = []
         for v in vals:
@@ -120,7 +121,7 @@ def metrics_table(scores: dict[str, dict]) -> str:
             if a is None or b is None:
                 row += '<td class="num">&mdash;</td>'
             else:
-                d = b - a
+                d = round(b - a, 3) + 0.0  # + 0.0: no "-0.000"
                 row += f'<td class="num {"pos" if d > 0 else "neg" if d < 0 else ""}">{d:+.3f}</td>'
         rows.append(row + "</tr>")
     return "<table>\n" + "\n".join(rows) + "\n</table>"
@@ -266,9 +267,11 @@ def write_report(run_dir: str | Path, figures: list[Path], out_html: str | Path 
     if figs:
         body.append("<p class=\"meta\">Per group of views. Row 1: each view with its single-view candidates "
                     "(contours of their silhouettes, coloured by the physical object they were matched to; red dashed: "
-                    "discarded). Row 2: the refined scene re-projected through each recovered camera. Bottom: top view "
-                    "of the recovered cameras and objects (mm), ground truth dashed (aligned through the gauge camera)."
-                    " Click a figure for full size.</p>")
+                    "discarded). Row 2: the refined scene re-projected through each recovered camera. Bottom: the "
+                    "recovered cameras and objects seen from above, looking down the normal of the plane the objects "
+                    "rest on, or down the cameras' mean up when no such plane is found (the plot's title says which), "
+                    "in mm from the gauge camera; ground truth dashed (aligned through the gauge camera). "
+                    "Click a figure for full size.</p>")
         toc = " &middot; ".join(f"<a href=\"#fig{k}\">{_e(f.stem)}</a>" for k, f in enumerate(figs))
         body.append(f"<p>{toc}</p>")
         for k, f in enumerate(figs):
