@@ -10,12 +10,12 @@ objects and the detector's time per image.
     .venv/bin/python benchmarks/bench_detect.py --seeds 777777,20261201,5550001,3141592,2718281   # pooled
 
 The held-out set: with --seed, `cosy synth --seed SEED --scenes S --views V --objects O` made in
---cache (default /tmp/cosy_heldout_seed<SEED>_<S>x<V>x<O>) when missing, so any seed gives a
+--cache (default cosy_heldout_seed<SEED>_<S>x<V>x<O> in the temporary folder) when missing, so any seed gives a
 fresh set. Honest figures need a seed that nothing else used: the detector's training renders
 its own random scenes (never `cosy synth`), one seed follows training and picks checkpoints
-(4242 for the shipped detector), and the figures reported in the README and the model card are
+(4242 for the shipped detector), and the figures reported in docs/results.md and the model card are
 measured on another one that no decision saw (777777). Without --seed: --dataset, else
-$COSY_HELDOUT, else /tmp/cosy_heldout (`cosy synth --seed 101`, the old default; seed 101 was
+$COSY_HELDOUT, else cosy_heldout in the temporary folder (`cosy synth --seed 101`, the old default; seed 101 was
 used to follow the first detector's training).
 
 Detections are kept from score 0.05 for AP (COCO practice: AP ranks by score); AP50 is also
@@ -57,7 +57,7 @@ from cosy_cli.io.dataset import BopDataset  # noqa: E402
 
 DEFAULT_DATASETS = tuple(Path(p) for p in (os.environ.get("COSY_HELDOUT"), Path(tempfile.gettempdir()) / "cosy_heldout") if p)
 FOLLOW_SEED = 4242     # follows training, chooses checkpoints and settings
-REPORT_SEED = 777777   # the figures reported (README, model card); never used for a decision
+REPORT_SEED = 777777   # the figures reported (docs/results.md, model card); never used for a decision
 
 
 def heldout_path(seed: int, scenes: int, views: int, objects: int) -> Path:
@@ -290,7 +290,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=6, help="scenes of the --seed set [6]")
     ap.add_argument("--views", type=int, default=6, help="views per scene of the --seed set [6]")
     ap.add_argument("--objects", type=int, default=8, help="objects per scene of the --seed set [8]")
-    ap.add_argument("--cache", type=Path, default=None, help="folder of the --seed set [/tmp/cosy_heldout_seed...]")
+    ap.add_argument("--cache", type=Path, default=None, help="folder of the --seed set [cosy_heldout_seed... in the temporary folder]")
     ap.add_argument("--dataset", type=Path, default=None,
                     help=f"held-out BOP dataset without --seed [{DEFAULT_DATASETS[0]} if present, else "
                          f"{DEFAULT_DATASETS[1]}]")

@@ -6,7 +6,7 @@ detections. For each chain it prints, after every step (coarse, ICP, refiner ite
 the recall of ADD-S < 0.1 diameter and the mean / median ADD-S (mm), and the time per detection
 and per image (one process, this machine's cores).
 
-    .venv/bin/python benchmarks/bench_estimate.py [--dataset /tmp/cosy_heldout] [--chains all]
+    .venv/bin/python benchmarks/bench_estimate.py [--dataset HELDOUT] [--chains all]
 
 Chains: templates (alone), templates-icp, templates-refiner, templates-icp-refiner, network
 (coarse + refiner networks, when a coarse model exists). Networks: the shipped ONNX models unless

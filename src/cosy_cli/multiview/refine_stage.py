@@ -933,7 +933,7 @@ def _check_leftovers(checker, ds: BopDataset, r: dict, cands: bop.PoseResults, d
     # RGB views, and views with depth when the group's views are distinct viewpoints (wide_views):
     # from one viewpoint the single-view pick (depth fit + image) is the stronger judge (on the YCB-V
     # frames the check cost 0.03 AR with the image score, 0.06 with depth + image); from several, the
-    # views' images settle what one view's depth cannot (a proxy RGB-D LM-O, see the README).
+    # views' images settle what one view's depth cannot (a proxy RGB-D LM-O, see docs/results.md).
     # Cameras: those from image features where refine finds them (feature_cameras "leftovers"),
     # computed here, and only when the check can use them: some label has leftovers in two views
     # (a leftover alone in its label cannot take another view's pose, whatever the cameras)

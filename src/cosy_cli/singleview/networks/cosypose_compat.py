@@ -57,9 +57,9 @@ ZUP_ROTATION = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
 # The original renders with pybullet, the object at the world origin (TWO = identity) and the
 # camera at TOC: pybullet's default light (direction (-50, 30, 100) in the world for its default
 # z-up axis) is therefore fixed in the *object* frame. Shadows and the specular term of pybullet's
-# shader are not reproduced (see notes/README_cosypose_section.md).
+# shader are not reproduced (see docs/cosypose.md).
 LIGHT_POS_OBJ = np.array([-50.0, 30.0, 100.0])
-RENDER_AMBIENT = 0.4  # our approximation of pybullet's ambient + diffuse split (see notes/README)
+RENDER_AMBIENT = 0.4  # our approximation of pybullet's ambient + diffuse split (see docs/cosypose.md)
 METADATA_KEY = "cosypose_network"
 INPUT_NAME = "input"
 OUTPUT_NAME = "pose"
