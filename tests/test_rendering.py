@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -423,7 +425,11 @@ def test_platform_selection(monkeypatch):
     from cosy_cli.rendering import select_gl_platform
 
     monkeypatch.setenv("COSY_GL", "EGL")
+    monkeypatch.delenv("PYGLET_HEADLESS", raising=False)
     assert select_gl_platform() == "egl"
+    assert os.environ["PYGLET_HEADLESS"] == "true"  # pyrender's pyglet without X11 libraries
+    monkeypatch.setenv("PYGLET_HEADLESS", "false")  # a user's own choice is kept
+    assert select_gl_platform() == "egl" and os.environ["PYGLET_HEADLESS"] == "false"
     monkeypatch.setenv("COSY_GL", "glx")
     with pytest.raises(CosyError, match="COSY_GL"):
         select_gl_platform()

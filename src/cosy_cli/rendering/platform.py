@@ -7,7 +7,8 @@ pyrender/OpenGL.
 
 - ``COSY_GL=egl`` (default): EGL without a display (Mesa's llvmpipe on a CPU, the vendor
   driver on a GPU; ``EGL_DEVICE_ID`` picks a device, default 0). Needs the system packages
-  ``libegl1 libegl-mesa0 libgl1-mesa-dri``.
+  ``libegl1 libegl-mesa0 libgl1-mesa-dri``. Sets ``PYGLET_HEADLESS=true`` unless it is set: pyrender
+  imports pyglet, which otherwise needs X11 libraries.
 - ``COSY_GL=osmesa``: the fallback, Mesa's off-screen software renderer. Needs ``libosmesa6``
   and ``PyOpenGL>=3.1.4`` (pyrender pins 3.1.0: install the newer one after pyrender).
 
@@ -45,6 +46,10 @@ def select_gl_platform() -> str:
                         f"cosy_cli.rendering could select {want!r}: import cosy_cli.rendering first, "
                         f"or set PYOPENGL_PLATFORM={want} in the environment")
     os.environ["PYOPENGL_PLATFORM"] = want
+    if want == "egl":
+        # pyrender imports pyglet, whose default (windowed) mode loads X11 libraries that a GPU
+        # server may not have ('XRenderFindVisualFormat'); its headless mode uses EGL alone
+        os.environ.setdefault("PYGLET_HEADLESS", "true")
     return want
 
 

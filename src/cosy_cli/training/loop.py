@@ -379,7 +379,9 @@ def run_loop(out: str | Path, conf: dict, record: dict, *, step: int, samples: i
         flush_log(lr)
         csv_log.close()
         save()
-        log(f"interrupted: checkpoint saved at step {step} in {ckpt_path} (continue with --resume)")
+        from ..console import warning  # said also with --quiet: a script must know how to continue
+
+        warning(f"interrupted: checkpoint saved at step {step} in {ckpt_path} (continue with --resume)")
         raise
     finally:
         bar.close()
