@@ -204,3 +204,31 @@ def test_a_stage_command_ends_with_what_it_wrote_where(tmp_path):
 def test_quiet_and_verbose_together_is_a_usage_error():
     res = _cosy("validate", "--dataset", DATA, "-q", "-v")
     assert res.exit_code == 2 and "at most one of --quiet and --verbose" in res.output
+
+
+def _worker_prints(state: dict) -> str:
+    """stderr of a fresh process (as a spawned worker is) that enters ``state`` and warns twice."""
+    import subprocess
+    import sys
+
+    code = ("import json, sys; from cosy_cli import console; from cosy_cli.errors import warn\n"
+            "console.enter_worker(json.loads(sys.argv[1]))\n"
+            "warn('a texture is missing'); warn('a depth image is empty'); warn('a depth image is empty')\n")
+    p = subprocess.run([sys.executable, "-c", code, json.dumps(state)], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    return p.stderr
+
+
+def test_a_worker_prints_warnings_as_its_command_does():
+    """Rendering workers of `cosy train` are spawned: they print cosy's warnings as `warning:` lines,
+    once, and not those the command already said; with --quiet's state the same (warnings are
+    for every level); without a state they stay Python warnings."""
+    with console.command_output(console.NORMAL):
+        warn("a texture is missing")  # said by the command before it starts its workers
+        state = console.worker_state()
+    assert state["said"] == ["a texture is missing"]
+    err = _worker_prints(state)
+    assert err.splitlines() == ["warning: a depth image is empty"]
+    assert _worker_prints({"level": console.QUIET, "said": []}).splitlines() == [
+        "warning: a texture is missing", "warning: a depth image is empty"]
+    assert "CosyWarning" in _worker_prints(None)

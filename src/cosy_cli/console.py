@@ -196,6 +196,33 @@ def capture_records(caught) -> list[dict]:
     return out
 
 
+def worker_state() -> dict:
+    """What a worker process of this command needs to print as the command does (picklable):
+    the verbosity and the warnings already said."""
+    return {"level": _level, "said": sorted(_said)}
+
+
+def enter_worker(state: dict | None) -> None:
+    """In a worker process a command started (spawned: nothing is inherited), with the command's
+    :func:`worker_state`: cosy's warnings become ``warning:`` lines at the command's verbosity,
+    and those the command already said (a missing texture met again by each worker) are not
+    repeated. Tolerated input problems are the reading process's to summarise: workers drop them
+    unless --verbose."""
+    from .errors import CosyWarning
+
+    if state is None:
+        return
+    set_level(state["level"])
+    _said.update(state["said"])
+    previous = warnings.showwarning
+
+    def show(*args, **kwargs):
+        _show_warning(*args, **kwargs, _previous=previous)
+
+    warnings.showwarning = show
+    warnings.simplefilter("always", CosyWarning)
+
+
 @contextlib.contextmanager
 def command_output(value: int = NORMAL):
     """One command's output: the verbosity, cosy's warnings routed here (genuine ones one line

@@ -675,13 +675,17 @@ class TrainingStream(_torch_iterable_base()):
             gen.close()
 
 
-def _worker_init(_worker_id: int) -> None:
-    """One llvmpipe thread and one torch thread per rendering worker (2-core machines).
+def _worker_init(_worker_id: int, output: dict | None = None) -> None:
+    """One llvmpipe thread and one torch thread per rendering worker (2-core machines); warnings
+    printed as the command prints them (``output``: :func:`cosy_cli.console.worker_state`).
 
     Also ends the worker with ``os._exit(0)`` once Python's exit handlers have run (its queues
     are flushed by then): interpreter teardown with a live Mesa/LLVM context sometimes aborts
     ("terminate called without an active exception"), which torch reports as a dead worker."""
     atexit.register(os._exit, 0)  # registered first: runs last, after the generators are closed
+    from .. import console
+
+    console.enter_worker(output)
     os.environ.setdefault("LP_NUM_THREADS", "1")
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     try:
@@ -699,7 +703,12 @@ def make_loader(stream: TrainingStream, num_workers: int = 2, prefetch_factor: i
 
     kw = {}
     if num_workers > 0:
-        kw = dict(multiprocessing_context="spawn", worker_init_fn=_worker_init, persistent_workers=True,
+        import functools
+
+        from .. import console
+
+        init = functools.partial(_worker_init, output=console.worker_state())
+        kw = dict(multiprocessing_context="spawn", worker_init_fn=init, persistent_workers=True,
                   prefetch_factor=prefetch_factor)
     return DataLoader(stream, batch_size=None, num_workers=num_workers, **kw)
 

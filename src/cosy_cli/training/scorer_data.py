@@ -227,7 +227,10 @@ def _worker_init(args):
     import os
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    models_dir, templates_dir, K, size, conf = args
+    models_dir, templates_dir, K, size, conf, output = args
+    from .. import console
+
+    console.enter_worker(output)
     from ..objects import ObjectDatabase
     from ..singleview.training_free.templates import TemplateSet
 
@@ -269,9 +272,11 @@ def write_shards(models_dir, templates_dir, K, image_size, conf: dict, folder: P
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
+            from .. import console
+
             ctx = mp.get_context("spawn")
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
-                                     initargs=((str(models_dir), str(templates_dir), K, image_size, conf),)) as ex:
+            args = (str(models_dir), str(templates_dir), K, image_size, conf, console.worker_state())
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(args,)) as ex:
                 for _ in ex.map(_worker_shard, [(str(folder), i) for i in todo]):
                     bar.update(1)
     finally:
