@@ -498,13 +498,19 @@ SUMMARY_METRICS = ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_av
 
 
 def summary_lines(manifest: dict, out: Path) -> list[str]:
-    """The terminal summary: stages (status, time) and the metrics, single view vs multi-view."""
+    """The terminal summary: stages (status, time), what the run wrote where, and last the metrics
+    table, single view vs multi-view (a log of the run ends with its results)."""
     lines = ["", f"{'stage':<10} {'status':<18} {'time':>9}"]
     for stage in STAGES:
         st = manifest["stages"].get(stage)
         if st:
             n = f" ({st['scenes_run']}/{st['scenes']} scenes)" if "scenes" in st else ""
             lines.append(f"{stage:<10} {st['status'] + n:<18} {st['time_s']:>8.1f}s")
+    lines += ["", wrote_line(out)]
+    sv = manifest.get("single_view") or {}
+    if sv.get("groups"):
+        lines.append(f"single view: {sv['groups']} of {sv['groups_total']} group(s) had one view "
+                     "(their candidates passed through as predictions)")
     m = manifest.get("metrics") or {}
     if m:
         names = list(m)
@@ -519,16 +525,11 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
                     label = f"  {first['level'] * 100:.0f} % interval ({first['unit']}s)"
                     lines.append(f"{label:<32}" + "".join(
                         f"{f'{c[k][0]:.3f}-{c[k][1]:.3f}' if c.get(k) else '-':>13}" for c in cis))
-    sv = manifest.get("single_view") or {}
-    if sv.get("groups"):
-        lines += ["", f"single view: {sv['groups']} of {sv['groups_total']} group(s) had one view "
-                      "(their candidates passed through as predictions)"]
-    lines += ["", wrote_line(out)]
     return lines
 
 
 def wrote_line(out: Path) -> str:
-    """The run's last line: what it wrote where (the final predictions, the report)."""
+    """What the run wrote where (the final predictions, the report): the line after its stages."""
     made = [rel for rel in ("refine/predictions.csv", "report.html") if (out / rel).is_file()]
     return (f"run: wrote {out}" + (f" (final predictions: {made[0]}" + "".join(f", {m}" for m in made[1:]) + ")"
                                    if "refine/predictions.csv" in made else f" ({', '.join(made)})" if made else "")
