@@ -307,3 +307,79 @@ def test_bop24_scores_by_hand():
     assert s["bop24_ap"] == pytest.approx((ap1 + ap2) / 2, abs=1e-12)
     assert set(s["per_object"]) == {"1", "2"}  # obj 3 is not in the image: not evaluated
     assert s["counts"]["estimates_evaluated"] == 6 and s["counts"]["valid_gt"] == 3
+
+
+# --------------------------------------------------------------------------------------------
+# the stage: which images, both protocols, the command line
+# --------------------------------------------------------------------------------------------
+def test_images_without_a_bop24_targets_file(tmp_path):
+    from cosy_cli.errors import CosyWarning
+    from cosy_cli.evaluation import evaluate_stage
+
+    root = make_bop24_dataset(tmp_path / "ds", targets=False)
+    with pytest.warns(CosyWarning, match="BOP24 evaluates every image with GT"):
+        s = evaluate_stage.main("bop19", root, SPLIT, root / "pred.csv", tmp_path / "ev1", metrics="bop24",
+                                progress=False, log=lambda *_: None)
+    assert s["bop24"]["counts"]["images"] == len(GT)  # scene 1 image 3 too
+    assert s["bop24"]["per_object"]["1"]["bop24_valid_gt"] == TOOLKIT_VALID_GT[1] + 1
+    # a BOP19 targets file: its images (in its order)
+    bop.write_targets(root / "test_targets_bop19.json", pd.DataFrame(
+        [(sc, im, o, 1) for sc, im in TARGET_IMAGES for o in sorted({r[0] for r in GT[(sc, im)]})],
+        columns=["scene_id", "im_id", "obj_id", "inst_count"]))
+    with pytest.warns(CosyWarning, match="BOP24 evaluates the images of test_targets_bop19.json"):
+        s = evaluate_stage.main("bop19", root, SPLIT, root / "pred.csv", tmp_path / "ev2", metrics="bop24",
+                                progress=False, log=lambda *_: None)
+    assert s["bop24_ap"] == pytest.approx(TOOLKIT["bop24_ap"], abs=1e-12)
+    # --targets: that file's images, for BOP24 as for BOP19
+    (tmp_path / "t.json").write_text(json.dumps([{"scene_id": 2, "im_id": 2}]))
+    s = evaluate_stage.main("bop19", root, SPLIT, root / "pred.csv", tmp_path / "ev3", metrics="bop24",
+                            targets=tmp_path / "t.json", progress=False, log=lambda *_: None)
+    assert s["bop24"]["counts"]["images"] == 1 and set(s["bop24"]["per_object"]) == {"1", "2"}
+    assert s["warnings"] == []
+
+
+def test_bop19_and_bop24_side_by_side(dataset, tmp_path):
+    """A dataset with only test_targets_bop24.json: BOP19 takes every GT instance of its images as a
+    target (a warning), BOP24 its images; both in scores.json and the summary."""
+    from cosy_cli.errors import CosyWarning
+    from cosy_cli.evaluation import evaluate_stage
+
+    said = []
+    with pytest.warns(CosyWarning) as w:
+        s = evaluate_stage.main("bop19", dataset, SPLIT, dataset / "pred.csv", tmp_path / "ev", metrics="bop19,bop24",
+                                progress=False, log=said.append)
+    text = "\n".join(str(x.message) for x in w)
+    assert "test_targets_bop24.json lists images without inst_count" in text and "VSD skipped" in text
+    n_gt = sum(len(GT[k]) for k in TARGET_IMAGES)
+    assert s["bop19"]["counts"]["targets"] == n_gt and s["counts"]["targets"] == n_gt
+    assert s["bop19_average_recall_mssd"] is not None
+    assert s["bop24_ap"] == pytest.approx(TOOLKIT["bop24_ap"], abs=1e-12)
+    assert set(s["per_object"]["1"]) >= {"bop19_average_recall_mssd", "bop24_ap_mssd", "bop24_valid_gt"}
+    log = "\n".join(said)
+    for k in ("bop19_average_recall_mssd:", "bop24_ap:", "bop24_ap_mssd:", "bop24_ap_mspd:", "bop24_ap_mssd_mm:"):
+        assert k in log
+    assert f"bop24_ap: {TOOLKIT['bop24_ap']:.4f}" in log
+
+
+def test_cli_bop24(dataset, tmp_path):
+    from click.testing import CliRunner
+
+    from cosy_cli.cli.main import cli
+
+    runner = CliRunner()
+    assert "bop24" in runner.invoke(cli, ["evaluate", "--help"]).output
+    base = ["evaluate", "--dataset", str(dataset), "--split", SPLIT, "--predictions", str(dataset / "pred.csv"),
+            "--metrics", "bop24"]
+    r = runner.invoke(cli, base + ["--out", str(tmp_path / "ev")])
+    assert r.exit_code == 0, r.output
+    assert f"bop24_ap: {TOOLKIT['bop24_ap']:.4f}" in r.output
+    assert json.loads((tmp_path / "ev" / "scores.json").read_text())["bop24_ap_mspd"] == pytest.approx(
+        TOOLKIT["bop24_ap_mspd"], abs=1e-12)
+    # bad targets: an image without GT, an entry without im_id
+    (tmp_path / "t1.json").write_text(json.dumps([{"scene_id": 2, "im_id": 0}, {"scene_id": 2, "im_id": 9}]))
+    r = runner.invoke(cli, base + ["--out", str(tmp_path / "ev1"), "--targets", str(tmp_path / "t1.json")])
+    assert r.exit_code == 2 and "scene 2 image 9 has no ground truth" in r.output and "entry 1" in r.output
+    assert "Traceback" not in r.output
+    (tmp_path / "t2.json").write_text(json.dumps([{"scene_id": 2}]))
+    r = runner.invoke(cli, base + ["--out", str(tmp_path / "ev2"), "--targets", str(tmp_path / "t2.json")])
+    assert r.exit_code == 2 and "missing key 'im_id'" in r.output and "entry 0" in r.output

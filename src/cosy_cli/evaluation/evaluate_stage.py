@@ -1,4 +1,4 @@
-"""``cosy evaluate``: pose errors of predictions against a BOP dataset's GT, BOP19 and CosyPose scores.
+"""``cosy evaluate``: pose errors of predictions against a BOP dataset's GT, BOP19, BOP24 and CosyPose scores.
 
 Inputs: a BOP dataset (scene_camera/scene_gt/scene_gt_info per scene, ``models_eval/`` (or
 ``models/``) with models_info.json, depth images for VSD), predictions as a BOP results CSV
@@ -18,7 +18,8 @@ Output folder (built atomically):
     (top ``inst_count`` estimates of each target; empty elsewhere), with the toolkit's values:
     1.0 when the sphere projections do not overlap (nothing rendered).
 ``scores.json``
-    BOP19 (``bop19_average_recall[_vsd|_mssd|_mspd]``), CosyPose AUC (``auc_adds``,
+    BOP19 (``bop19_average_recall[_vsd|_mssd|_mspd]``), with ``bop24`` the BOP 2024 detection APs
+    (``bop24_ap[_mssd|_mspd|_mssd_mm]``, :mod:`.bop24`), CosyPose AUC (``auc_adds``,
     ``auc_add_or_adds``, ``recall_adds_0.1d``), per-object breakdowns, counts, camera errors
     (with a scene.json), warnings, the settings and the inputs (hashes).
 ``curves.csv``, ``gt_errors.csv``
