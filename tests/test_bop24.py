@@ -99,7 +99,7 @@ def predictions():
         # scene 1 image 2: obj 6 has no estimate; obj 5 only a 5 % visible GT
         (1, 2, 2, 0.74, moved(g(1, 2, 0), (0, 22, 0))),  # 22 mm
         (1, 2, 1, 0.81, moved(g(1, 2, 2), (3, 0, 0), axis=(0, 0, 1), deg=12)),
-        (1, 2, 5, 0.9, moved(g(1, 2, 3), (40, 0, 0))),  # obj 5 far from its invisible GT: FP of an object without targets
+        (1, 2, 5, 0.9, moved(g(1, 2, 3), (40, 0, 0))),  # FP of obj 5, which has no visible GT: left out
         (1, 2, 5, 0.35, g(1, 2, 3)),  # exact on the invisible GT: ignored
         # scene 1 image 3 is not a target image: not evaluated
         (1, 3, 1, 0.95, g(1, 3, 0)),
@@ -159,7 +159,8 @@ def make_bop24_dataset(root: Path, targets: bool = True) -> Path:
             i: [bop.GtInfo(np.zeros(4), np.zeros(4), 100, 100, int(100 * r[4]), r[4]) for r in GT[(scene, i)]]
             for i in ims})
     if targets:
-        (root / "test_targets_bop24.json").write_text(json.dumps([{"im_id": i, "scene_id": s} for s, i in TARGET_IMAGES]))
+        entries = [{"im_id": i, "scene_id": s} for s, i in TARGET_IMAGES]
+        (root / "test_targets_bop24.json").write_text(json.dumps(entries))
     rows = predictions()
     res = bop.PoseResults.from_arrays([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows],
                                       [r[3] for r in rows], np.stack([r[4] for r in rows]))
@@ -227,6 +228,7 @@ def test_bop24_matches_the_toolkit(dataset, tmp_path):
     c = b["counts"]
     assert c["images"] == len(TARGET_IMAGES) and c["estimates_over_cap"] == 4
     assert c["objects_without_valid_gt"] == [5]
+    assert b["max_estimates_per_image"] == 100
     assert b["image_width_px"] == {"1": 720.0, "2": 720.0}
     assert s["warnings"] == [] and "bop19_average_recall" not in s
     saved = json.loads((tmp_path / "ev" / "scores.json").read_text())
@@ -270,6 +272,7 @@ def test_outcomes_cap_and_normalisation():
     est = pd.DataFrame({"est_index": [0, 1, 2, 3], "scene_id": [1, 1, 1, 1], "im_id": [0, 0, 0, 5],
                         "score": [0.5, 0.9, 0.5, 0.1]})
     assert b.keep_top_per_image(est, 2)["est_index"].tolist() == [0, 1, 3]  # tie on 0.5: file order
+    assert b.max_estimates_per_image("tless") == 100 and b.max_estimates_per_image("xyzibd") == 200
     err = pd.DataFrame({"obj_id": [1, 1], "scene_id": [1, 1], "mssd": [10.0, 10.0], "mspd": [36.0, 36.0],
                         "te": [60.0, 10.0]})
     n = b.normalized_errors(err, {1: 50.0}, {1: 720.0})

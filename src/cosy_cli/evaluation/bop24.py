@@ -6,8 +6,9 @@ What the BOP toolkit computes (``scripts/eval_bop24_pose.py`` -> ``eval_calc_err
 
 1. Images: those of the targets file (``test_targets_bop24.json``: scene_id, im_id; no object and
    no instance count). Estimates of other images are not evaluated.
-2. Estimates: at most :data:`MAX_ESTIMATES_PER_IMAGE` per image, the highest-scored (ties: file
-   order), counted over all objects, before anything else. An estimate whose object has no GT
+2. Estimates: at most :data:`MAX_ESTIMATES_PER_IMAGE` per image (200 for XYZ-IBD, whose dataset
+   folder is named ``xyzibd``), the highest-scored (ties: file order), counted over all objects,
+   before anything else. An estimate whose object has no GT
    instance in its image is not evaluated at all (neither true nor false positive).
 3. Errors: MSSD / diameter (infinite where |t_e - t_g| >= diameter, the toolkit's sphere
    shortcut), the same MSSD in mm, and MSPD x 640 / image width; against every GT instance of
@@ -46,9 +47,15 @@ BOP24_THRESHOLDS = {
 BOP24_METRICS = ("mssd", "mspd", "mssd_mm")
 VISIB_GT_MIN = 0.1
 MAX_ESTIMATES_PER_IMAGE = 100
+MAX_ESTIMATES_PER_IMAGE_BY_DATASET = {"xyzibd": 200}  # the toolkit's exceptions, by dataset name
 RECALL_LEVELS = np.linspace(0.0, 1.0, 101)
 
 GROUP = ["scene_id", "im_id", "obj_id"]
+
+
+def max_estimates_per_image(dataset_name: str) -> int:
+    """How many estimates per image the toolkit keeps for a dataset (named as its BOP folder)."""
+    return MAX_ESTIMATES_PER_IMAGE_BY_DATASET.get(str(dataset_name), MAX_ESTIMATES_PER_IMAGE)
 
 
 def keep_top_per_image(est: pd.DataFrame, max_per_image: int = MAX_ESTIMATES_PER_IMAGE) -> pd.DataFrame:

@@ -488,10 +488,12 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         scores["bop19_ci"] = b["ci"]
     if "bop24" in metrics:
         widths24 = image_widths(ds, sorted(set(ims24["scene_id"])))
-        b24 = bop24_protocol.bop24_scores(gt, ims24, est, table, {o: db[o].diameter for o in db.obj_ids}, widths24)
+        cap = bop24_protocol.max_estimates_per_image(Path(dataset).resolve().name)
+        b24 = bop24_protocol.bop24_scores(gt, ims24, est, table, {o: db[o].diameter for o in db.obj_ids}, widths24,
+                                          max_per_image=cap)
         scores.update({k: b24[k] for k in BOP24_KEYS})
         scores["bop24"] = {"images": ims24_desc, "visib_gt_min": bop24_protocol.VISIB_GT_MIN,
-                           "max_estimates_per_image": bop24_protocol.MAX_ESTIMATES_PER_IMAGE,
+                           "max_estimates_per_image": cap,
                            "counts": b24["counts"], "curves": b24["curves"], "image_width_px": widths24,
                            "per_object": b24["per_object"]}
         if not b24["counts"]["objects"]:
