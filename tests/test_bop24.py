@@ -310,6 +310,11 @@ def test_bop24_scores_by_hand():
     assert s["bop24_ap"] == pytest.approx((ap1 + ap2) / 2, abs=1e-12)
     assert set(s["per_object"]) == {"1", "2"}  # obj 3 is not in the image: not evaluated
     assert s["counts"]["estimates_evaluated"] == 6 and s["counts"]["valid_gt"] == 3
+    # no estimate at all: AP 0; no GT instance visible enough: no AP (NaN), nothing fails
+    none = bop24_scores(gt, ims, est.iloc[:0], errors.iloc[:0], {1: 50.0, 2: 50.0}, {1: 640.0})
+    assert none["bop24_ap"] == 0.0 and none["counts"]["objects"] == 2
+    dim = bop24_scores(gt.assign(visib_fract=0.05), ims, est, errors, {1: 50.0, 2: 50.0, 3: 50.0}, {1: 640.0})
+    assert np.isnan(dim["bop24_ap"]) and dim["per_object"] == {} and dim["counts"]["objects_without_valid_gt"] == [1, 2]
 
 
 # --------------------------------------------------------------------------------------------

@@ -216,7 +216,7 @@ def bop24_scores(gt: pd.DataFrame, images: pd.DataFrame, est: pd.DataFrame, erro
         out[f"bop24_ap_{m}"] = float(np.mean(list(obj_ap.values()))) if obj_ids else float("nan")
         for o in obj_ids:
             per_object.setdefault(str(o), {})[f"bop24_ap_{m}"] = obj_ap[o]
-        A = np.array([ap[m][o] for o in obj_ids]).reshape(len(obj_ids), -1)
+        A = np.array([ap[m][o] for o in obj_ids], dtype=np.float64).reshape(len(obj_ids), len(BOP24_THRESHOLDS[m]))
         curves[m] = {"thresholds": BOP24_THRESHOLDS[m].tolist(),
                      "ap": (A.mean(0) if obj_ids else np.full(A.shape[1], np.nan)).tolist(),
                      "per_object": {str(o): ap[m][o] for o in obj_ids}, **counts_out[m]}
