@@ -1,4 +1,4 @@
-"""``cosy evaluate``: BOP19 and CosyPose (AUC) scores of pose predictions, errors.csv and report.png."""
+"""``cosy evaluate``: BOP19, BOP24 and CosyPose (AUC) scores of pose predictions, errors.csv and report.png."""
 
 from __future__ import annotations
 
@@ -18,10 +18,14 @@ from .common import dataset_options, user_errors
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="Output folder: errors.csv, scores.json, curves.csv, gt_errors.csv, report.png.")
 @click.option("--targets", type=click.Path(path_type=Path), default=None,
-              help="Targets file [DATASET/test_targets_bop19.json; without one every GT instance is a target].")
+              help="Targets file, for every protocol [bop19: DATASET/test_targets_bop19.json, without one every GT "
+                   "instance is a target; bop24: the images of DATASET/test_targets_bop24.json, else of the bop19 "
+                   "file, else every image with GT].")
 @click.option("--metrics", default="bop19,auc", show_default=True,
-              help="Comma-separated protocols: bop19 (VSD, MSSD, MSPD average recalls), auc (CosyPose/PoseCNN AUC of "
-                   "ADD-S, ADD(-S), top-1), vivo (CosyPose T-LESS ViVo: AUC of ADD-S, ADD-S<0.1d, mAP@ADD-S<0.1d).")
+              help="Comma-separated protocols: bop19 (6D localization: VSD, MSSD, MSPD average recalls of the top "
+                   "inst_count estimates), bop24 (6D detection: MSSD, MSPD average precisions, every estimate, up to "
+                   "100 per image), auc (CosyPose/PoseCNN AUC of ADD-S, ADD(-S), top-1), vivo (CosyPose T-LESS ViVo: "
+                   "AUC of ADD-S, ADD-S<0.1d, mAP@ADD-S<0.1d).")
 @click.option("--scene-id", "scene_ids", type=int, multiple=True,
               help="Only these scenes (repeatable): their GT and targets; other scenes' predictions are ignored [all].")
 @click.option("--scene-json", type=click.Path(path_type=Path), default=None,
@@ -35,7 +39,8 @@ from .common import dataset_options, user_errors
 @user_errors
 def evaluate(dataset: Path, split: str, predictions: Path, out: Path, targets, metrics: str, scene_ids, scene_json,
              models_dir: str, vsd_delta, no_vsd: bool, overwrite: bool) -> None:
-    """Evaluate pose predictions: BOP19 (VSD, MSSD, MSPD) and CosyPose AUC (ADD-S, ADD(-S)). Lengths in mm."""
+    """Evaluate pose predictions: BOP19 (VSD, MSSD, MSPD), CosyPose AUC (ADD-S, ADD(-S)) and, on request, BOP24
+    (MSSD, MSPD average precision). Lengths in mm."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from ..evaluation import evaluate_stage
 

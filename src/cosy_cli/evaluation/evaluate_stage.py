@@ -1,4 +1,4 @@
-"""``cosy evaluate``: pose errors of predictions against a BOP dataset's GT, BOP19 and CosyPose scores.
+"""``cosy evaluate``: pose errors of predictions against a BOP dataset's GT, BOP19, BOP24 and CosyPose scores.
 
 Inputs: a BOP dataset (scene_camera/scene_gt/scene_gt_info per scene, ``models_eval/`` (or
 ``models/``) with models_info.json, depth images for VSD), predictions as a BOP results CSV
@@ -18,7 +18,8 @@ Output folder (built atomically):
     (top ``inst_count`` estimates of each target; empty elsewhere), with the toolkit's values:
     1.0 when the sphere projections do not overlap (nothing rendered).
 ``scores.json``
-    BOP19 (``bop19_average_recall[_vsd|_mssd|_mspd]``), CosyPose AUC (``auc_adds``,
+    BOP19 (``bop19_average_recall[_vsd|_mssd|_mspd]``), with ``bop24`` the BOP 2024 detection APs
+    (``bop24_ap[_mssd|_mspd|_mssd_mm]``, :mod:`.bop24`), CosyPose AUC (``auc_adds``,
     ``auc_add_or_adds``, ``recall_adds_0.1d``), per-object breakdowns, counts, camera errors
     (with a scene.json), warnings, the settings and the inputs (hashes).
 ``curves.csv``, ``gt_errors.csv``
@@ -47,11 +48,12 @@ from ..conf import as_bool, merge_conf
 from ..errors import CosyError
 from ..io import atomic, bop, cache, manifest
 from ..io.dataset import BopDataset
-from . import pose_error, protocols
+from . import bop24 as bop24_protocol, pose_error, protocols
 
 OUTPUT_FILES = ("errors.csv", "scores.json", "curves.csv", "gt_errors.csv", "report.png")
-KNOWN_METRICS = ("bop19", "auc", "vivo")
+KNOWN_METRICS = ("bop19", "bop24", "auc", "vivo")
 DEFAULT_METRICS = ("bop19", "auc")
+BOP24_KEYS = ("bop24_ap", "bop24_ap_mssd", "bop24_ap_mspd", "bop24_ap_mssd_mm")
 
 CONFS: dict[str, dict] = {
     # BOP19 (bop_toolkit eval_bop19_pose.py defaults) and the CosyPose AUC protocol.
@@ -177,18 +179,55 @@ def load_targets(ds: BopDataset, targets_path, gt: pd.DataFrame, warn) -> tuple[
         warn("no targets file (test_targets_bop19.json): every GT instance of every image is a target")
         t = gt.groupby(["scene_id", "im_id", "obj_id"]).size().rename("inst_count").reset_index()
         return t, "all GT (no targets file)"
+    listed, with_counts = bop.read_target_images(path)
+    if not with_counts:  # a BOP 2024 file: images only
+        _check_target_images(listed, gt, ds, path)
+        warn(f"{path.name} lists images without inst_count: BOP19 takes every GT instance of them as a target")
+        t = gt.merge(listed, on=["scene_id", "im_id"]).groupby(["scene_id", "im_id", "obj_id"]).size() \
+            .rename("inst_count").reset_index()
+        return t, f"{path} (images; every GT instance a target)"
     t = bop.read_targets(path)
-    ims = gt[["scene_id", "im_id"]].drop_duplicates()
-    known = set(zip(ims["scene_id"], ims["im_id"]))
-    for i, (s, im) in enumerate(zip(t["scene_id"], t["im_id"])):
-        if (int(s), int(im)) not in known:
-            raise CosyError(f"target scene {int(s)} image {int(im)} has no ground truth in {ds.split_dir}",
-                            path=path, where=f"entry {i}")
+    _check_target_images(t, gt, ds, path)
     dup = t.duplicated(["scene_id", "im_id", "obj_id"])
     if dup.any():
         i = int(np.flatnonzero(dup.to_numpy())[0])
         raise CosyError("duplicate target (same scene, image and object)", path=path, where=f"entry {i}")
     return t, str(path)
+
+
+def _check_target_images(listed: pd.DataFrame, gt: pd.DataFrame, ds: BopDataset, path: Path) -> None:
+    """Every (scene_id, im_id) of ``listed`` (indexed by entry number) has GT, else a CosyError."""
+    ims = gt[["scene_id", "im_id"]].drop_duplicates()
+    known = set(zip(ims["scene_id"], ims["im_id"]))
+    for i, s, im in zip(listed.index, listed["scene_id"], listed["im_id"]):
+        if (int(s), int(im)) not in known:
+            raise CosyError(f"target scene {int(s)} image {int(im)} has no ground truth in {ds.split_dir}",
+                            path=path, where=f"entry {i}")
+
+
+BOP24_TARGETS = "test_targets_bop24.json"
+
+
+def load_bop24_images(ds: BopDataset, targets_path, gt: pd.DataFrame, warn) -> tuple[pd.DataFrame, str]:
+    """The images BOP 2024 evaluates, in the targets file's order: those of ``targets_path`` (either
+    format), else of the dataset's test_targets_bop24.json, else of its test_targets_bop19.json
+    (a warning), else every image with GT (a warning)."""
+    if targets_path is not None:
+        path = Path(targets_path)
+        if not path.is_file():
+            raise CosyError("targets file not found", path=path)
+    elif (ds.root / BOP24_TARGETS).is_file():
+        path = ds.root / BOP24_TARGETS
+    else:
+        path = ds.targets_path()
+        if path is None:
+            warn(f"no targets file ({BOP24_TARGETS}): BOP24 evaluates every image with GT")
+            ims = gt[["scene_id", "im_id"]].drop_duplicates().sort_values(["scene_id", "im_id"])
+            return ims.reset_index(drop=True), "all images with GT (no targets file)"
+        warn(f"no {BOP24_TARGETS}: BOP24 evaluates the images of {path.name}")
+    listed, _ = bop.read_target_images(path)
+    _check_target_images(listed, gt, ds, path)
+    return listed.reset_index(drop=True), str(path)
 
 
 def parse_scene_json(path: Path, ds: BopDataset) -> list[dict]:
@@ -388,11 +427,18 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
     unknown_gt = sorted(set(gt["obj_id"]) - set(db.obj_ids))
     if unknown_gt:
         raise CosyError(f"GT objects {unknown_gt} have no model in {models_path}", path=models_path)
-    tgt, targets_desc = load_targets(ds, targets, gt, warn)
+    tgt = ims24 = None  # BOP19 targets (bop19, auc, vivo); the images BOP24 evaluates
+    if any(m in metrics for m in ("bop19", "auc", "vivo")):
+        tgt, targets_desc = load_targets(ds, targets, gt, warn)
+    if "bop24" in metrics:
+        ims24, ims24_desc = load_bop24_images(ds, targets, gt, warn)
     if scene_ids is not None:
         keep = gt["scene_id"].isin(set(int(x) for x in scene_ids)).to_numpy()
         gt, T_gt = gt[keep].reset_index(drop=True), T_gt[keep]
-        tgt = tgt[tgt["scene_id"].isin(set(int(x) for x in scene_ids))].reset_index(drop=True)
+        if tgt is not None:
+            tgt = tgt[tgt["scene_id"].isin(set(int(x) for x in scene_ids))].reset_index(drop=True)
+        if ims24 is not None:
+            ims24 = ims24[ims24["scene_id"].isin(set(int(x) for x in scene_ids))].reset_index(drop=True)
     n_steps = continuous_steps_for_max_step(conf["max_sym_disc_step"])
 
     est = res.table[["scene_id", "im_id", "obj_id", "score"]].copy()
@@ -440,6 +486,19 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
                            "vsd_delta_mm": conf["vsd_delta"], "vsd_taus": protocols.BOP19_VSD_TAUS.tolist(),
                            "image_width_px": widths, "per_object": b["per_object"]}
         scores["bop19_ci"] = b["ci"]
+    if "bop24" in metrics:
+        widths24 = image_widths(ds, sorted(set(ims24["scene_id"])))
+        cap = bop24_protocol.max_estimates_per_image(Path(dataset).resolve().name)
+        b24 = bop24_protocol.bop24_scores(gt, ims24, est, table, {o: db[o].diameter for o in db.obj_ids}, widths24,
+                                          max_per_image=cap)
+        scores.update({k: b24[k] for k in BOP24_KEYS})
+        scores["bop24"] = {"images": ims24_desc, "visib_gt_min": bop24_protocol.VISIB_GT_MIN,
+                           "max_estimates_per_image": cap,
+                           "counts": b24["counts"], "curves": b24["curves"], "image_width_px": widths24,
+                           "per_object": b24["per_object"]}
+        if not b24["counts"]["objects"]:
+            warn(f"BOP24: no GT instance at least {bop24_protocol.VISIB_GT_MIN:.0%} visible in the evaluated images: "
+                 "no AP")
     gt_err = gt[["scene_id", "im_id", "gt_index", "obj_id", "visib_fract"]].copy()
     if "auc" in metrics:
         ims = tgt[["scene_id", "im_id"]].drop_duplicates()
@@ -466,13 +525,16 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
             "protocol": "ViVo with multi-view targets: each object of the scene in every target image of it "
                         "(inst_count = its instances in the scene), visible or not", "counts": vs["counts"]}
     per_object: dict = {}
-    for part in ("bop19", "auc", "vivo"):
+    for part in ("bop19", "bop24", "auc", "vivo"):
         for o, v in scores.get(part, {}).get("per_object", {}).items():
             per_object.setdefault(str(o), {}).update(v)
     scores["per_object"] = dict(sorted(per_object.items(), key=lambda kv: int(kv[0])))
-    scores["counts"] = {"estimates": int(len(est)), "gt_instances": int(len(gt)), "pairs": int(len(est_gt)),
-                        "targets": int(tgt["inst_count"].sum()), "target_images": int(len(tgt[["scene_id", "im_id"]]
-                                                                                        .drop_duplicates()))}
+    scores["counts"] = {"estimates": int(len(est)), "gt_instances": int(len(gt)), "pairs": int(len(est_gt))}
+    if tgt is not None:
+        scores["counts"].update({"targets": int(tgt["inst_count"].sum()),
+                                 "target_images": int(len(tgt[["scene_id", "im_id"]].drop_duplicates()))})
+    else:
+        scores["counts"]["target_images"] = int(len(ims24))
     if scene_json is not None:
         groups = parse_scene_json(Path(scene_json), ds)
         gt_cams = {k: c.T_cam_world for k, c in cams.items() if c.T_cam_world is not None}
@@ -500,7 +562,7 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         atomic.write_json(tmp / "scores.json", _clean(scores))
         manifest.write_folder_manifest(tmp, "cosy evaluate", OUTPUT_FILES)
     for k in ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
-              "bop19_average_recall_mspd", "bop19_average_recall_mssd_mspd", "auc_adds", "auc_add_or_adds",
+              "bop19_average_recall_mspd", "bop19_average_recall_mssd_mspd", *BOP24_KEYS, "auc_adds", "auc_add_or_adds",
               "recall_adds_0.1d", "vivo_auc_adds", "vivo_recall_adds_0.1d", "vivo_map_adds_0.1d",
               "vivo_auc_adds_scene_targets", "vivo_recall_adds_0.1d_scene_targets", "vivo_map_adds_0.1d_scene_targets"):
         if k in scores:

@@ -494,6 +494,31 @@ def write_models_info(path: str | Path, infos: Mapping[int, ModelInfo]) -> None:
 # --------------------------------------------------------------------------------------------
 # test targets
 # --------------------------------------------------------------------------------------------
+def read_target_images(path: str | Path) -> tuple[pd.DataFrame, bool]:
+    """The images of a targets file, BOP 2024 (``test_targets_bop24.json``: a list of {scene_id,
+    im_id}) or BOP19 (with obj_id and inst_count): (scene_id, im_id) in the file's order, each once,
+    indexed by the entry that lists it first; and whether any entry has an ``inst_count`` (then it
+    is read as a BOP19 file, :func:`read_targets`)."""
+    import pandas as pd
+
+    path = Path(path)
+    data = load_json(path)
+    if not isinstance(data, list):
+        raise CosyError("expected a JSON list of {scene_id, im_id[, obj_id, inst_count]}", path=path)
+    rows = []
+    for i, e in enumerate(data):
+        where = f"entry {i}"
+        row = []
+        for k in ("scene_id", "im_id"):
+            v = _require(e, k, path, where)
+            if not isinstance(v, int) or isinstance(v, bool):
+                raise CosyError(f"{k}: expected an integer, got {v!r}", path=path, where=where)
+            row.append(v)
+        rows.append(row)
+    counts = any("inst_count" in e for e in data)
+    return pd.DataFrame(rows, columns=["scene_id", "im_id"], dtype=np.int64).drop_duplicates(), counts
+
+
 TARGET_COLUMNS = ["scene_id", "im_id", "obj_id", "inst_count"]
 
 
