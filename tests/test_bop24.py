@@ -383,6 +383,9 @@ def test_cli_bop24(dataset, tmp_path):
     assert f"bop24_ap: {TOOLKIT['bop24_ap']:.4f}" in r.output
     assert json.loads((tmp_path / "ev" / "scores.json").read_text())["bop24_ap_mspd"] == pytest.approx(
         TOOLKIT["bop24_ap_mspd"], abs=1e-12)
+    # --protocol names the same option (the BOP toolkit's word)
+    r = runner.invoke(cli, base[:-2] + ["--protocol", "bop24", "--out", str(tmp_path / "ev_p")])
+    assert r.exit_code == 0 and f"bop24_ap: {TOOLKIT['bop24_ap']:.4f}" in r.output, r.output
     # bad targets: an image without GT, an entry without im_id
     (tmp_path / "t1.json").write_text(json.dumps([{"scene_id": 2, "im_id": 0}, {"scene_id": 2, "im_id": 9}]))
     r = runner.invoke(cli, base + ["--out", str(tmp_path / "ev1"), "--targets", str(tmp_path / "t1.json")])

@@ -21,8 +21,8 @@ from .common import dataset_options, user_errors
               help="Targets file, for every protocol [bop19: DATASET/test_targets_bop19.json, without one every GT "
                    "instance is a target; bop24: the images of DATASET/test_targets_bop24.json, else of the bop19 "
                    "file, else every image with GT].")
-@click.option("--metrics", default="bop19,auc", show_default=True,
-              help="Comma-separated protocols: bop19 (6D localization: VSD, MSSD, MSPD average recalls of the top "
+@click.option("--metrics", "--protocol", "metrics", default="bop19,auc", show_default=True,
+              help="Comma-separated protocols (--protocol is the same option): bop19 (6D localization: VSD, MSSD, MSPD average recalls of the top "
                    "inst_count estimates), bop24 (6D detection: MSSD, MSPD average precisions, every estimate, up to "
                    "100 per image), auc (CosyPose/PoseCNN AUC of ADD-S, ADD(-S), top-1), vivo (CosyPose T-LESS ViVo: "
                    "AUC of ADD-S, ADD-S<0.1d, mAP@ADD-S<0.1d).")
