@@ -427,7 +427,7 @@ class BopDataset:
         s = self._sensor_for(scene_id)
         base = "mask_visib" if visib else "mask"
         d = self.scene_dir(scene_id)
-        folder = d / f"{base}_{s}" if s and (d / f"{base}_{s}").is_dir() else d / base
+        folder = d / f"{base}_{s}" if s and ((d / f"{base}_{s}").is_dir() or self.is_multi_sensor) else d / base
         return folder / f"{int(im_id):06d}_{int(gt_index):06d}.png"
 
     # ---- checked image reads ---------------------------------------------------------------
