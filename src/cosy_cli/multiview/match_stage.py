@@ -309,7 +309,7 @@ def target_groups(ds: BopDataset, scene_ids) -> dict[int, list[list[int]]]:
                                     f"({', '.join(ds.sensors)})", path=path, where=f"entry {i}")
                 v = ds.view_id(sensor, im)
             else:
-                if sensor not in (bop.DEFAULT_SENSOR, ds.sensor, getattr(ds, "eval_sensor", None)):
+                if sensor not in (bop.DEFAULT_SENSOR, ds.sensor or ds.eval_sensor):
                     continue  # another sensor's image: not in this single-sensor run
                 v = int(im)
             if v not in cams:
@@ -317,7 +317,7 @@ def target_groups(ds: BopDataset, scene_ids) -> dict[int, list[list[int]]]:
                                 where=f"entry {i}")
             ims.append(v)
         if ims:
-            out.setdefault(t.scene_id, []).append(sorted(ims))
+            out.setdefault(t.scene_id, []).append(sorted(set(ims)))
     return out
 
 

@@ -336,8 +336,9 @@ def plan_groups(ds: BopDataset, groups: str | None) -> tuple[str, str | None, st
     sensors at once (:class:`~cosy_cli.io.dataset.RigDataset`), cameras known from their
     extrinsics, grouped by ``test_targets_multiview_bop25.json`` when the dataset has one, else by
     instant (``groups`` chooses: ``scene`` puts every instant of a static scene in one group);
-    predictions are for the evaluation sensor's images. Otherwise (one sensor, classic layouts)
-    the dataset's multi-view targets file groups the views when there is one, else the scene."""
+    predictions are for the evaluation sensor's images. One sensor of a multi-sensor dataset is
+    grouped by scene; a single-sensor dataset by its multi-view targets file when it has one
+    (without known cameras), else by scene."""
     from ..io.dataset import RIG, split_spec_sensor
 
     chosen = split_spec_sensor(ds.split_spec)
@@ -347,7 +348,7 @@ def plan_groups(ds: BopDataset, groups: str | None) -> tuple[str, str | None, st
     if groups == "instant":
         raise CosyError("--groups instant groups the sensors of a multi-sensor dataset (no --sensor, or --sensor rig)",
                         path=ds.split_dir)
-    if groups is None and ds.multiview_targets_path() is not None:
+    if groups is None and not ds.is_multi_sensor and ds.multiview_targets_path() is not None:
         return ds.split_spec, None, "targets"
     return ds.split_spec, None, groups
 
