@@ -210,3 +210,26 @@ def test_run_on_a_rig_beats_single_view_on_the_evaluation_sensor(rig_dataset, tm
     mv = json.loads((out / "evaluate" / "multi_view" / "scores.json").read_text())
     key = "bop19_average_recall_mssd_mspd"
     assert mv[key] > sv[key] + 0.01, (sv[key], mv[key])
+
+
+def test_contour_crops_of_a_large_image_blur_only_their_window():
+    """Per detection, the anti-aliased crop of a shrunk window equals the crop of the whole image
+    blurred (the work no longer scales with the image: 4K images of IPD and ITODD-MV)."""
+    import cv2
+
+    from cosy_cli.singleview.training_free import contour
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (700, 900, 3), dtype=np.uint8)
+    K = _K(900, 700, 800.0)
+    boxes = np.array([[100.0, 120.0, 420.0, 400.0], [600.0, 300.0, 890.0, 690.0], [0.0, 0.0, 899.0, 699.0]])
+    conf = contour.ContourConf()
+    _, crops, _, _ = contour.observe_windows(img, K, boxes, conf)
+    win = contour.windows(boxes, conf.margin)
+    A = contour.crop_affine(win, (conf.crop, conf.crop))
+    for i in range(len(boxes)):
+        scale = conf.crop / (win[i, 2] - win[i, 0])
+        assert scale < 0.7
+        ref = cv2.warpAffine(cv2.GaussianBlur(img, (0, 0), 0.5 / scale), A[i], (conf.crop, conf.crop),
+                             flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        assert np.array_equal(crops[i], ref)
