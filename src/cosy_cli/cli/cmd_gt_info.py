@@ -40,9 +40,9 @@ def gt_info(dataset: Path, split: str, split_type: str | None, scene_ids: tuple[
     conf = None if visibility is None else {"visibility": visibility}
     summary = stage.main(conf, dataset, split, scene_ids=list(scene_ids) or None, masks=masks, split_type=split_type,
                          models_dir=models_dir, delta_mm=delta_mm, overwrite=overwrite, progress=True)
-    split = split.partition(":")[0]
+    split, _, sensor = split.partition(":")
     split_dir = Path(dataset) / (f"{split}_{split_type}" if split_type else split)
-    console.done(f"{summary.line()} -> {split_dir}/*/scene_gt_info.json")
+    console.done(f"{summary.line()} -> {split_dir}/*/scene_gt_info{'_' + sensor if sensor else ''}.json")
 
 
 COMMANDS = [gt_info]
