@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from .. import console
-from .common import user_errors
+from .common import sensor_option, user_errors
 
 
 @click.command("gt-info")
@@ -15,6 +15,7 @@ from .common import user_errors
               help="BOP dataset folder (models/, <split>/<scene>/scene_gt.json...).")
 @click.option("--split", default="test", show_default=True, help="Split folder (test, train_real, train_pbr...).")
 @click.option("--split-type", default=None, help="Split type suffix, e.g. primesense for test_primesense.")
+@sensor_option
 @click.option("--scene-id", "scene_ids", type=int, multiple=True, help="Only these scenes (repeatable).")
 @click.option("--masks", is_flag=True, help="Also write mask/ and mask_visib/ PNGs (as calc_gt_masks.py).")
 @click.option("--models-dir", default="models", show_default=True,
@@ -39,8 +40,9 @@ def gt_info(dataset: Path, split: str, split_type: str | None, scene_ids: tuple[
     conf = None if visibility is None else {"visibility": visibility}
     summary = stage.main(conf, dataset, split, scene_ids=list(scene_ids) or None, masks=masks, split_type=split_type,
                          models_dir=models_dir, delta_mm=delta_mm, overwrite=overwrite, progress=True)
+    split, _, sensor = split.partition(":")
     split_dir = Path(dataset) / (f"{split}_{split_type}" if split_type else split)
-    console.done(f"{summary.line()} -> {split_dir}/*/scene_gt_info.json")
+    console.done(f"{summary.line()} -> {split_dir}/*/scene_gt_info{'_' + sensor if sensor else ''}.json")
 
 
 COMMANDS = [gt_info]

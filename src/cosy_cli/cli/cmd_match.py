@@ -28,6 +28,10 @@ from .common import dataset_options, user_errors
               help="Split each scene's images (sorted by im_id) into consecutive groups of N (default: one group).")
 @click.option("--known-cameras", is_flag=True,
               help="Take camera poses from cam_R_w2c/cam_t_w2c and only associate candidates (no RANSAC).")
+@click.option("--groups", "grouping", type=click.Choice(["scene", "instant", "targets"]), default=None,
+              help="Views of a group: scene (all of a scene, or --views-per-group), instant (the sensors' images of "
+                   "one im_id, with --sensor rig), targets (one group per entry of "
+                   "test_targets_multiview_bop25.json) [scene].")
 @click.option("--threshold-mm", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Inlier threshold on the symmetric distance D_l, mm: the floor of the adaptive threshold, "
                    "the threshold itself with --threshold-rel 0 --adaptive-k 0 [paper: 20].")
@@ -73,7 +77,7 @@ from .common import dataset_options, user_errors
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, views_per_group, known_cameras: bool,
-          threshold_mm, threshold_rel, adaptive_k, weak_links, max_rotation_deg, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
+          grouping, threshold_mm, threshold_rel, adaptive_k, weak_links, max_rotation_deg, ransac_iterations, ransac_confidence, min_inliers, score_threshold, symmetry_steps, refit, seed,
           label_groups, cross_label_hypotheses, hypotheses, hypothesis_penalty, overwrite: bool) -> None:
     """Match object candidates across views (CosyPose stage 2): RANSAC per view pair, scene graph.
 
@@ -83,6 +87,7 @@ def match(dataset: Path, split: str, candidates: Path, out: Path, conf: str, vie
     from ..multiview import match_stage
 
     c = match_stage.resolve_conf(conf, views_per_group=views_per_group, known_cameras=known_cameras or None,
+                                 groups=grouping,
                                  threshold_mm=threshold_mm, threshold_rel=threshold_rel, adaptive_k=adaptive_k,
                                  weak_links=weak_links, max_rotation_deg=max_rotation_deg,
                                  ransac_iterations=ransac_iterations,

@@ -37,6 +37,10 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
               help="Groups of N consecutive views per scene [all views of a scene in one group].")
 @click.option("--known-cameras", is_flag=True, default=None,
               help="Use the cameras of scene_camera.json (a calibrated rig, a SLAM trajectory).")
+@click.option("--groups", "grouping", type=click.Choice(["scene", "instant", "targets"]), default=None,
+              help="Multi-view groups: scene (all views of a scene, or --views-per-group), instant (the sensors' "
+                   "images of one im_id), targets (one per entry of test_targets_multiview_bop25.json) [targets "
+                   "when the dataset has that file; else instant for a multi-sensor dataset run as a rig; else scene].")
 @click.option("--from", "first", type=click.Choice(STAGE_NAMES), default="detect", show_default=True,
               help="First stage to run (earlier outputs are used as they are).")
 @click.option("--to", "last", type=click.Choice(STAGE_NAMES), default="viz", show_default=True,
@@ -50,7 +54,7 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 @click.option("--overwrite", is_flag=True, help="Rerun every stage even if it is up to date.")
 @user_errors
 def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
-        templates_dir, scorer_model, views_per_group, known_cameras, first, last, settings, workers, dask_scheduler,
+        templates_dir, scorer_model, views_per_group, known_cameras, grouping, first, last, settings, workers, dask_scheduler,
         overwrite) -> None:
     """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
 
@@ -70,7 +74,7 @@ def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, 
                    candidates=candidates, models_dir=models_dir,
                    templates_dir=templates_dir, scorer_model=scorer_model, overrides=overrides, first=first,
                    last=last,
-                   workers=workers, dask_scheduler=dask_scheduler, log=console.echo, progress=True)
+                   workers=workers, dask_scheduler=dask_scheduler, log=console.echo, progress=True, groups=grouping)
 
 
 COMMANDS = [run]

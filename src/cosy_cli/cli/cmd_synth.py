@@ -35,9 +35,12 @@ def _human_bytes(n: int) -> str:
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out (or only its --split, for a dataset of "
                                                 "the same objects and camera).")
 @click.option("--models-only", is_flag=True, help="Write only models/, models_eval/ and camera.json.")
+@click.option("--sensors", type=click.IntRange(min=2), default=None,
+              help="Write the multi-sensor layout (BOP industrial datasets): a calibrated rig of N sensors "
+                   "(cam0..), own intrinsics and image sizes, the last one grey; --views instants per scene.")
 @user_errors
 def synth(out: Path, scenes: int, views: int, objects: int, seed: int, width: int, height: int, split: str,
-          overwrite: bool, models_only: bool) -> None:
+          overwrite: bool, models_only: bool, sensors: int | None) -> None:
     """Write a BOP dataset of 8 procedural T-LESS-like objects resting on a table.
 
     The objects are fixed (the same models for every seed); scenes, cameras, colours, lights and
@@ -45,8 +48,25 @@ def synth(out: Path, scenes: int, views: int, objects: int, seed: int, width: in
     models_info.json), models_eval/, camera.json, <split>/<scene>/{rgb,depth,mask,mask_visib}/,
     scene_camera.json (with cam_R_w2c, cam_t_w2c), scene_gt.json, scene_gt_info.json and, for
     the test split, test_targets_bop19.json. Lengths in mm; depth png x 0.1 = mm.
+
+    With --sensors N: the multi-sensor layout instead (camera_SENSOR.json, dataset_info.json
+    naming the evaluation sensor cam0, per scene rgb_SENSOR/ or gray_SENSOR/, depth_SENSOR/,
+    masks and scene_*_SENSOR.json with the rig's extrinsics, test_targets_bop19/bop24.json of
+    cam0 and test_targets_multiview_bop25.json, one entry per instant).
     """
     from ..synth import main
+
+    if sensors is not None:
+        if models_only:
+            raise click.UsageError("--sensors and --models-only do not go together")
+        from ..synth.rig import generate_rig_dataset
+
+        s = generate_rig_dataset(out, sensors, scenes, views, objects, seed=seed, width=width, height=height,
+                                 split=split, overwrite=overwrite, progress=True)
+        console.done(f"synth: wrote {s.out}: {s.mode} '{s.split}': {s.n_scenes} scenes, {sensors} sensors, "
+                     f"{s.n_images} images, {s.n_instances} object instances, "
+                     f"{_human_bytes(s.bytes_on_disk)} on disk, {s.seconds:.1f} s")
+        return
 
     s = main(out, scenes, views, objects, seed=seed, width=width, height=height, split=split, overwrite=overwrite,
              models_only=models_only, progress=True)

@@ -9,7 +9,7 @@ import click
 
 from .. import console
 from ..errors import CosyError, DatasetProblems
-from .common import user_errors
+from .common import sensor_option, user_errors
 
 
 @click.command("validate")
@@ -17,6 +17,7 @@ from .common import user_errors
               help="BOP dataset folder (camera.json, models/, <split>/...).")
 @click.option("--split", default="test", show_default=True, help="Split folder to check (test, train_pbr, val...).")
 @click.option("--split-type", default=None, help="Split type suffix, e.g. primesense for test_primesense.")
+@sensor_option
 @click.option("--camera", default=None,
               help="Dataset camera file, relative to the dataset folder (or absolute), e.g. camera_uw.json "
                    "(default: camera_<split-type>.json, camera.json, or the only camera_*.json there).")

@@ -13,11 +13,31 @@ from ..errors import CosyError, DatasetProblems
 USER_ERROR_EXIT = 2
 
 
+SENSOR_HELP = ("Sensor of a multi-sensor dataset (IPD, XYZ-IBD, ITODD-MV: rgb_SENSOR/ or gray_SENSOR/ folders) "
+               "[its evaluation sensor]; 'rig' is every sensor at once.")
+
+
+def sensor_option(fn):
+    """``--sensor NAME``, folded into the command's ``split`` as the split spec ``SPLIT:NAME``
+    (:func:`cosy_cli.io.dataset.with_sensor`), which every stage passes along as its split."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, sensor=None, **kwargs):
+        if sensor:
+            from ..io.dataset import with_sensor
+
+            kwargs["split"] = with_sensor(kwargs.get("split") or "test", sensor)
+        return fn(*args, **kwargs)
+
+    return click.option("--sensor", default=None, metavar="NAME", help=SENSOR_HELP)(wrapper)
+
+
 def dataset_options(dataset_help: str):
-    """The ``--dataset DIR`` and ``--split NAME`` options every dataset-reading stage takes."""
+    """The ``--dataset DIR``, ``--split NAME`` and ``--sensor NAME`` options every dataset-reading stage takes."""
     from pathlib import Path
 
     def decorate(fn):
+        fn = sensor_option(fn)
         fn = click.option("--split", default="test", show_default=True, help="Split folder (test, val...).")(fn)
         return click.option("--dataset", required=True, type=click.Path(path_type=Path), help=dataset_help)(fn)
 
@@ -29,6 +49,7 @@ def scene_options(fn):
     stage runs on (resolve them with :func:`resolve_scenes`)."""
     from pathlib import Path
 
+    fn = sensor_option(fn)
     fn = click.option("--scene-id", "scene_ids", type=int, multiple=True,
                       help="Only these scenes (repeatable; with --dataset).")(fn)
     fn = click.option("--split", default="test", show_default=True, help="Split folder (with --dataset).")(fn)
@@ -59,8 +80,9 @@ def resolve_scenes(scene, dataset, split, scene_ids):
     if scene is not None:
         if scene_ids:
             raise CosyError("--scene-id goes with --dataset, not --scene")
+        sensor = split.partition(":")[2] if split else ""
         dataset, split, sid = scene_location(scene)
-        return dataset, split, [sid]
+        return dataset, (f"{split}:{sensor}" if sensor else split), [sid]
     return dataset, split, (list(scene_ids) or None)
 
 

@@ -545,6 +545,51 @@ def read_targets(path: str | Path) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=TARGET_COLUMNS, dtype=np.int64)
 
 
+DEFAULT_SENSOR = "default"  # the sensor name of single-sensor datasets in test_targets_multiview_bop25.json
+
+
+@dataclass
+class MultiviewTarget:
+    """One entry of ``test_targets_multiview_bop25.json``: the images seen together."""
+
+    scene_id: int
+    views: list[tuple[str, int]]  # (sensor, im_id); sensor "default" for single-sensor datasets
+    extra: dict = field(default_factory=dict)  # other keys of the entry, kept as they are
+
+
+def read_multiview_targets(path: str | Path) -> list[MultiviewTarget]:
+    """``test_targets_multiview_bop25.json`` (BOP 2025 multi-view task): a list of
+    ``{"scene_id": S, "im_id": [[SENSOR, IM_ID], ...]}``, one entry per multi-view group. An item
+    that is a bare integer is the image of sensor ``default``; other keys of an entry are kept."""
+    path = Path(path)
+    data = load_json(path)
+    if not isinstance(data, list):
+        raise CosyError('expected a JSON list of {"scene_id": S, "im_id": [[SENSOR, IM_ID], ...]}', path=path)
+    out = []
+    for i, e in enumerate(data):
+        where = f"entry {i}"
+        sid = _require(e, "scene_id", path, where)
+        if not isinstance(sid, int) or isinstance(sid, bool):
+            raise CosyError(f"scene_id: expected an integer, got {sid!r}", path=path, where=where)
+        items = _require(e, "im_id", path, where)
+        if not isinstance(items, list) or not items:
+            raise CosyError(f"im_id: expected a non-empty list of [SENSOR, IM_ID] pairs, got {items!r}",
+                            path=path, where=where)
+        views = []
+        for item in items:
+            if isinstance(item, int) and not isinstance(item, bool):
+                views.append((DEFAULT_SENSOR, int(item)))
+            elif (isinstance(item, list) and len(item) == 2 and isinstance(item[0], str)
+                  and isinstance(item[1], int) and not isinstance(item[1], bool)):
+                views.append((item[0], int(item[1])))
+            else:
+                raise CosyError(f"im_id: expected [SENSOR, IM_ID] pairs, got {item!r}", path=path, where=where)
+        if len(set(views)) != len(views):
+            raise CosyError("im_id: an image is listed twice", path=path, where=where)
+        out.append(MultiviewTarget(int(sid), views, {k: v for k, v in e.items() if k not in ("scene_id", "im_id")}))
+    return out
+
+
 def write_targets(path: str | Path, targets: pd.DataFrame) -> None:
     cols = ["im_id", "inst_count", "obj_id", "scene_id"]  # the key order of the BOP files
     data = [{k: int(r[k]) for k in cols} for r in targets.to_dict("records")]

@@ -11,6 +11,23 @@ BOP-H3 (HOT3D, HOPEv2, HANDAL in BOP 2024) adds per-sensor files: ``scene_camera
 ``scene_gt_<sensor>.json``, ``scene_gt_info_<sensor>.json`` and image folders named by sensor
 (``rgb``, ``gray1``, ``gray2``...). Pass ``sensor`` to pick one; by default it is detected.
 
+Multi-sensor (the BOP industrial datasets since 2024: IPD, XYZ-IBD, ITODD-MV)::
+
+    DATASET/camera_<sensor>.json, dataset_info.json, test_targets_multiview_bop25.json
+    DATASET/<split>/<scene_id:06d>/{rgb|gray}_<sensor>/<im_id:06d>.png, depth_<sensor>/,
+                                   mask_<sensor>/, mask_visib_<sensor>/,
+                                   scene_camera_<sensor>.json, scene_gt_<sensor>.json, ...
+
+The images of one im_id across sensors are one instant seen by a calibrated rig (their
+``cam_R_w2c``/``cam_t_w2c`` share the scene's world frame). ``sensor`` picks one; by default the
+evaluation sensor: ``eval_sensor`` of ``dataset_info.json`` when it names one, else the one the
+BOP toolkit evaluates on for the known datasets (:data:`EVAL_SENSORS`), else the only sensor; else a
+CosyError listing the sensors. The sensor ``rig`` (:data:`RIG`) is every sensor at once
+(:class:`RigDataset`).
+
+A *split spec* ``SPLIT:SENSOR`` (e.g. ``test:xyz``, ``test:rig``) given as ``split`` is the split
+and the sensor together: the stages pass it along as they pass a split (``--sensor`` makes it).
+
 Images read through :class:`BopDataset` (``read_rgb``, ``read_depth``, ``read_mask``,
 ``image_size``) are checked against what the dataset says about them, so that no stage computes
 poses with intrinsics that do not belong to an image (``check_images=False`` turns this off):
@@ -44,6 +61,12 @@ from ..errors import CosyError, warn
 from . import bop, images
 
 TARGET_FILES = ("test_targets_bop19.json", "test_targets_bop24.json")
+MULTIVIEW_TARGETS = "test_targets_multiview_bop25.json"
+DATASET_INFO = "dataset_info.json"
+# the sensor the BOP toolkit evaluates on (bop_toolkit_lib/dataset_params.py), by dataset folder name
+EVAL_SENSORS = {"ipd": "photoneo", "xyzibd": "xyz", "itoddmv": "3dlong", "itodd-mv": "3dlong", "itodd_mv": "3dlong"}
+RIG = "rig"  # the sensor name meaning "every sensor of the rig" (RigDataset)
+IMAGE_KINDS = ("rgb", "gray")  # image folders of the multi-sensor layout: rgb_<sensor>, gray_<sensor>
 PP_MARGIN = 0.1  # cam_K's principal point may lie this fraction of the image size outside it (crops)
 PP_CENTRAL = 0.25  # "near the centre": within this fraction of the size from the image centre
 DEPTH_SCALE_RTOL = 0.1  # depth vs GT: tolerated offset, fraction of the object's distance (beyond its box)
@@ -127,6 +150,28 @@ def depth_vs_gt(depth_mm: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, corn
     return measured, z_min, z_max
 
 
+def parse_split_spec(spec: str) -> tuple[str, str | None]:
+    """``"test:xyz"`` -> ("test", "xyz"); ``"test"`` -> ("test", None) (module doc)."""
+    split, sep, sensor = str(spec).partition(":")
+    if sep and not sensor:
+        raise CosyError(f"split {spec!r}: expected SPLIT or SPLIT:SENSOR")
+    return split, (sensor or None)
+
+
+def split_spec_sensor(spec: str) -> str | None:
+    return str(spec).partition(":")[2] or None
+
+
+def with_sensor(split: str, sensor: str | None) -> str:
+    """The split spec of ``split`` with ``sensor`` (None: ``split`` as it is); what ``--sensor`` makes."""
+    if not sensor:
+        return split
+    base, old = parse_split_spec(split)
+    if old is not None and old != sensor:
+        raise CosyError(f"split {split!r} already names sensor {old!r}, and --sensor says {sensor!r}")
+    return f"{base}:{sensor}"
+
+
 @dataclass
 class BopDataset:
     root: Path
@@ -138,10 +183,85 @@ class BopDataset:
     check_images: bool = True  # check what read_rgb/read_depth/read_mask read against the dataset (module doc)
     _cache: dict = field(default_factory=dict, repr=False)
 
+    def __new__(cls, root=None, split: str = "test", *args, **kwargs):
+        sensor = kwargs.get("sensor", args[1] if len(args) > 1 else None)
+        if cls is BopDataset and (sensor == RIG or (sensor is None and split_spec_sensor(split) == RIG)):
+            cls = RigDataset
+        return object.__new__(cls)
+
     def __post_init__(self) -> None:
         self.root = Path(self.root)
+        split, sensor = parse_split_spec(self.split)
+        self.split = split
+        if sensor is not None and self.sensor is None:
+            self.sensor = sensor
         if not self.root.is_dir():
             raise CosyError("dataset folder not found", path=self.root)
+        if self.sensor is not None and self.sensor != RIG and self.is_multi_sensor:
+            if self.sensor not in self.sensors:
+                raise CosyError(f"no sensor {self.sensor!r} in {self.split_name} (sensors: {', '.join(self.sensors)})",
+                                path=self.split_dir)
+
+    @property
+    def split_spec(self) -> str:
+        """The split with its sensor (``test:xyz``) when one was chosen, else the split: what the
+        stages pass along and record (:func:`parse_split_spec` reads it back)."""
+        return f"{self.split}:{self.sensor}" if self.sensor else self.split
+
+    # ---- sensors (multi-sensor layout) -----------------------------------------------------
+    @cached_property
+    def sensors(self) -> list[str]:
+        """The sensors of the split's multi-sensor layout (the names of its image folders
+        ``rgb_<sensor>``/``gray_<sensor>`` next to ``scene_camera_<sensor>.json``), sorted; [] for
+        the classic and BOP-H3 layouts."""
+        found: set[str] = set()
+        if self.split_dir.is_dir():
+            for d in self.split_dir.iterdir():
+                if not (d.is_dir() and d.name.isdigit()):
+                    continue
+                for f in d.glob("scene_camera_*.json"):
+                    s = f.name[len("scene_camera_"):-len(".json")]
+                    if any((d / f"{k}_{s}").is_dir() for k in IMAGE_KINDS):
+                        found.add(s)
+        return sorted(found)
+
+    @property
+    def is_multi_sensor(self) -> bool:
+        return bool(self.sensors)
+
+    def dataset_info(self) -> dict:
+        """``dataset_info.json`` of the dataset root as a dict ({} when absent or not an object)."""
+        if "dataset_info" not in self._cache:
+            p = self.root / DATASET_INFO
+            d = bop.load_json(p) if p.is_file() else {}
+            self._cache["dataset_info"] = d if isinstance(d, dict) else {}
+        return self._cache["dataset_info"]
+
+    @cached_property
+    def eval_sensor(self) -> str | None:
+        """The sensor predictions are evaluated on (module doc); None for single-sensor layouts.
+        A CosyError listing the sensors when nothing says which."""
+        sensors = self.sensors
+        if not sensors:
+            return None
+        named = self.dataset_info().get("eval_sensor")
+        if isinstance(named, str) and named:
+            if named not in sensors:
+                raise CosyError(f"eval_sensor {named!r} is not a sensor of {self.split_name} "
+                                f"(sensors: {', '.join(sensors)})", path=self.root / DATASET_INFO)
+            return named
+        known = EVAL_SENSORS.get(self.root.name.lower())
+        if known in sensors:
+            return known
+        if len(sensors) == 1:
+            return sensors[0]
+        raise CosyError(f"several sensors ({', '.join(sensors)}) and no evaluation sensor known for this dataset: "
+                        f"choose one with --sensor NAME (or name it as eval_sensor in {DATASET_INFO})",
+                        path=self.split_dir)
+
+    def is_gray(self, scene_id: int) -> bool:
+        """Whether the scene's images are grey (a ``gray`` or ``gray_<sensor>`` folder)."""
+        return self.image_dir(scene_id).name.split("_")[0] == "gray"
 
     # ---- folders ---------------------------------------------------------------------------
     @property
@@ -190,6 +310,8 @@ class BopDataset:
         """The sensor suffix of the scene's JSON files (None: classic layout)."""
         if self.sensor is not None:
             return self.sensor
+        if self.is_multi_sensor:
+            return self.eval_sensor
         d = self.scene_dir(scene_id)
         if (d / "scene_camera.json").is_file():
             return None
@@ -206,10 +328,11 @@ class BopDataset:
     def image_dir(self, scene_id: int) -> Path:
         d = self.scene_dir(scene_id)
         s = self._sensor_for(scene_id)
-        for name in ([s] if s else []) + ["rgb", "gray"]:
+        names = ([f"{k}_{s}" for k in IMAGE_KINDS] + [s] if s else []) + list(IMAGE_KINDS)
+        for name in names:
             if (d / name).is_dir():
                 return d / name
-        raise CosyError(f"no image folder ({'/'.join(([s] if s else []) + ['rgb', 'gray'])})", path=d)
+        raise CosyError(f"no image folder ({'/'.join(names)})", path=d)
 
     # ---- files -----------------------------------------------------------------------------
     def scene_camera(self, scene_id: int) -> dict[int, bop.SceneCamera]:
@@ -253,7 +376,9 @@ class BopDataset:
             if not p.is_file():
                 raise CosyError("camera file not found", path=p)
             return p
-        names = ([f"camera_{self.split_type}.json"] if self.split_type else []) + ["camera.json"]
+        names = ([f"camera_{self.sensor}.json"] if self.sensor and self.sensor != RIG else []) + \
+            ([f"camera_{self.eval_sensor}.json"] if self.sensor is None and self.is_multi_sensor else []) + \
+            ([f"camera_{self.split_type}.json"] if self.split_type else []) + ["camera.json"]
         for n in names:
             if (self.root / n).is_file():
                 return self.root / n
@@ -263,6 +388,11 @@ class BopDataset:
     def camera(self) -> bop.CameraInfo | None:
         p = self.camera_path
         return bop.read_camera(p) if p is not None else None
+
+    def multiview_targets_path(self) -> Path | None:
+        """``test_targets_multiview_bop25.json`` of the dataset root, or None."""
+        p = self.root / MULTIVIEW_TARGETS
+        return p if p.is_file() else None
 
     def targets_path(self) -> Path | None:
         for name in TARGET_FILES:
@@ -297,7 +427,7 @@ class BopDataset:
         s = self._sensor_for(scene_id)
         base = "mask_visib" if visib else "mask"
         d = self.scene_dir(scene_id)
-        folder = d / f"{base}_{s}" if s and (d / f"{base}_{s}").is_dir() else d / base
+        folder = d / f"{base}_{s}" if s and ((d / f"{base}_{s}").is_dir() or self.is_multi_sensor) else d / base
         return folder / f"{int(im_id):06d}_{int(gt_index):06d}.png"
 
     # ---- checked image reads ---------------------------------------------------------------
@@ -345,7 +475,8 @@ class BopDataset:
         file or its cam_K (rules: :func:`image_size_problem`): a CosyError naming the file and both sizes."""
         wh = (int(wh[0]), int(wh[1]))
         K = self._K(scene_id, im_id)
-        camera = self.camera_size() if self._sensor_for(scene_id) is None else None  # BOP-H3: per-sensor sizes
+        # BOP-H3: per-sensor sizes; multi-sensor: camera_<sensor>.json is the sensor's
+        camera = self.camera_size() if self._sensor_for(scene_id) is None or self.is_multi_sensor else None
         scene, uniform = None, False
         if camera is None or wh != tuple(camera[0]):
             try:
@@ -477,3 +608,120 @@ class BopDataset:
                  f"{len(off)} object(s) more than {DEPTH_SCALE_RTOL:.0%} off, e.g. {measured[i]:.0f} mm measured, "
                  f"{zc[i]:.0f} mm from the GT pose): wrong depth_scale ({scale:g} in "
                  f"{self.scene_file(scene_id, 'scene_camera').name}) or wrong GT?", path=path)
+
+
+class RigDataset(BopDataset):
+    """Every sensor of a multi-sensor split at once, as one dataset whose images are *rig views*:
+    the image ``im_id`` of the ``k``-th sensor (of :attr:`sensors`, sorted) is the view
+    ``im_id * N + k`` (N sensors), so that the views of one instant are consecutive
+    (:meth:`view_id`, :meth:`view_of`). Every file is read through the sensor's own
+    :class:`BopDataset`; cameras keep their ``cam_R_w2c``/``cam_t_w2c`` (the rig's extrinsics in
+    the scene's world frame). The files of the evaluation sensor stand for the scene where one
+    file is asked for (``scene_file``, ``camera``)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.sensor = RIG
+        if not self.is_multi_sensor:
+            raise CosyError(f"sensor {RIG!r}: {self.split_name} has no multi-sensor layout "
+                            f"(rgb_SENSOR/ or gray_SENSOR/ with scene_camera_SENSOR.json)", path=self.split_dir)
+        self._subs = {s: BopDataset(self.root, self.split, self.split_type, s, self.models_subdir, None,
+                                    self.check_images) for s in self.sensors}
+
+    def sub(self, sensor: str) -> BopDataset:
+        return self._subs[sensor]
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.sensors)
+
+    def view_id(self, sensor: str, im_id: int) -> int:
+        return int(im_id) * self.n_sensors + self.sensors.index(sensor)
+
+    def view_of(self, view_id: int) -> tuple[str, int]:
+        """A rig view -> (sensor, im_id)."""
+        im, k = divmod(int(view_id), self.n_sensors)
+        return self.sensors[k], im
+
+    def _merged(self, scene_id: int, what: str) -> dict:
+        key = ("rig", what, int(scene_id))
+        if key not in self._cache:
+            out = {}
+            for k, s in enumerate(self.sensors):
+                sub = self._subs[s]
+                if what != "cam" and not sub.has_gt(scene_id):
+                    continue
+                data = {"cam": sub.scene_camera, "gt": sub.scene_gt, "gt_info": sub.scene_gt_info}[what](scene_id)
+                for im, v in data.items():
+                    out[int(im) * self.n_sensors + k] = v
+            self._cache[key] = dict(sorted(out.items()))
+        return self._cache[key]
+
+    def scene_camera(self, scene_id: int):
+        return self._merged(scene_id, "cam")
+
+    def scene_gt(self, scene_id: int):
+        return self._merged(scene_id, "gt")
+
+    def scene_gt_info(self, scene_id: int):
+        return self._merged(scene_id, "gt_info")
+
+    def has_gt(self, scene_id: int) -> bool:
+        return all(sub.has_gt(scene_id) for sub in self._subs.values())
+
+    def scene_file(self, scene_id: int, kind: str) -> Path:
+        return self._subs[self.eval_sensor].scene_file(scene_id, kind)
+
+    def image_dir(self, scene_id: int) -> Path:
+        return self._subs[self.eval_sensor].image_dir(scene_id)
+
+    @property
+    def camera_path(self) -> Path | None:
+        return self._subs[self.eval_sensor].camera_path
+
+    def camera_size(self):
+        return None
+
+    def is_gray(self, scene_id: int, view_id: int | None = None) -> bool:
+        s = self.eval_sensor if view_id is None else self.view_of(view_id)[0]
+        return self._subs[s].is_gray(scene_id)
+
+    def rgb_path(self, scene_id: int, im_id: int) -> Path:
+        s, im = self.view_of(im_id)
+        return self._subs[s].rgb_path(scene_id, im)
+
+    def depth_path(self, scene_id: int, im_id: int) -> Path | None:
+        s, im = self.view_of(im_id)
+        return self._subs[s].depth_path(scene_id, im)
+
+    def mask_path(self, scene_id: int, im_id: int, gt_index: int, visib: bool = False) -> Path:
+        s, im = self.view_of(im_id)
+        return self._subs[s].mask_path(scene_id, im, gt_index, visib=visib)
+
+    def scene_image_sizes(self, scene_id: int) -> dict[int, tuple[int, int]]:
+        return {self.view_id(s, im): wh for s in self.sensors
+                for im, wh in self._subs[s].scene_image_sizes(scene_id).items()}
+
+    def image_size(self, scene_id: int, im_id: int) -> tuple[int, int]:
+        s, im = self.view_of(im_id)
+        return self._subs[s].image_size(scene_id, im)
+
+    def check_image_size(self, scene_id: int, im_id: int, wh, path: Path, what: str = "image") -> None:
+        s, im = self.view_of(im_id)
+        self._subs[s].check_image_size(scene_id, im, wh, path, what)
+
+    def check_image_files(self, scene_ids=None, *, depth: bool = False) -> None:
+        for sub in self._subs.values():
+            sub.check_image_files(scene_ids, depth=depth)
+
+    def read_rgb(self, scene_id: int, im_id: int) -> np.ndarray:
+        s, im = self.view_of(im_id)
+        return self._subs[s].read_rgb(scene_id, im)
+
+    def read_depth(self, scene_id: int, im_id: int) -> np.ndarray | None:
+        s, im = self.view_of(im_id)
+        return self._subs[s].read_depth(scene_id, im)
+
+    def read_mask(self, scene_id: int, im_id: int, gt_index: int, visib: bool = False) -> np.ndarray:
+        s, im = self.view_of(im_id)
+        return self._subs[s].read_mask(scene_id, im, gt_index, visib=visib)

@@ -86,6 +86,22 @@ def write_rgb(path: str | Path, rgb: np.ndarray, jpg_quality: int = 95) -> None:
     _imwrite(path, img, params)
 
 
+def write_gray(path: str | Path, rgb: np.ndarray, jpg_quality: int = 95) -> None:
+    """Write an (H, W, 3) RGB or (H, W) image as a one-channel grey image (BT.601 luma)."""
+    path = Path(path)
+    img = np.asarray(rgb, dtype=np.uint8)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else [cv2.IMWRITE_PNG_COMPRESSION, 6]
+    _imwrite(path, img, params)
+
+
+def is_gray_file(path: str | Path) -> bool:
+    """Whether an image file has one channel (read by :func:`read_rgb` as three equal channels)."""
+    img = _imread(Path(path), cv2.IMREAD_UNCHANGED)
+    return img.ndim == 2 or img.shape[2] == 1
+
+
 def write_depth(path: str | Path, depth_mm: np.ndarray, depth_scale: float = 1.0) -> None:
     """Write depth in mm as a 16-bit png holding ``round(depth_mm / depth_scale)``."""
     d = np.round(np.asarray(depth_mm, dtype=np.float64) / depth_scale)

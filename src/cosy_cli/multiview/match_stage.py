@@ -93,6 +93,10 @@ CONFS: dict[str, dict] = {
         "refit": True,
         "sym_candidates": 4,
         "views_per_group": None,
+        # the views of a group: "scene" (all of a scene, or views_per_group consecutive ones),
+        # "instant" (the sensors' images of one im_id: a rig, dataset sensor 'rig'), "targets"
+        # (one group per entry of test_targets_multiview_bop25.json)
+        "groups": "scene",
         "known_cameras": False,
         "seed": 0,
         # cosy's additions for real data (issue 16): an inlier threshold that follows the
@@ -127,6 +131,9 @@ CONFS["paper-fixed"] = {**CONFS["paper"], "threshold_rel": 0.0, "adaptive_k": 0.
                         "max_rotation_deg": 180.0}
 
 
+GROUPINGS = ("scene", "instant", "targets")
+
+
 def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     """A full configuration: a named one (or a dict over ``paper``) with overrides (None ignored)."""
     base = merge_conf(CONFS, conf, overrides, default="paper", what="match")
@@ -158,6 +165,8 @@ def resolve_conf(conf: str | dict | None = "paper", **overrides) -> dict:
     base["score_threshold"] = float(base["score_threshold"])
     base["refit"] = as_bool(base["refit"], "refit", "match")
     base["known_cameras"] = as_bool(base["known_cameras"], "known_cameras", "match")
+    if base["groups"] not in GROUPINGS:
+        raise CosyError(f"groups = {base['groups']!r}: expected one of {', '.join(GROUPINGS)}")
     base["label_groups"] = label_groups.normalize_setting(base["label_groups"])
     base["cross_label_hypotheses"] = as_bool(base["cross_label_hypotheses"], "cross_label_hypotheses", "match")
     return base
@@ -275,9 +284,66 @@ def _row(i: int) -> str:
     return f"row {i + 1}"
 
 
-def make_groups(ds: BopDataset, scene_ids, views_per_group: int | None) -> list[dict]:
-    """[{scene_id, group_id, im_ids}] for the scenes, images sorted by im_id."""
+def target_groups(ds: BopDataset, scene_ids) -> dict[int, list[list[int]]]:
+    """{scene_id: [im_ids of each group]} from the dataset's ``test_targets_multiview_bop25.json``
+    for the scenes ``scene_ids``: the im_ids of a single-sensor dataset (sensor ``default``, or
+    the dataset's sensor), rig views of a ``rig`` dataset (:class:`~cosy_cli.io.dataset.RigDataset`).
+    A CosyError for a missing file or an image the scene does not have."""
+    from ..io.dataset import MULTIVIEW_TARGETS, RigDataset
+
+    path = ds.multiview_targets_path()
+    if path is None:
+        raise CosyError(f"groups 'targets': no {MULTIVIEW_TARGETS} in the dataset folder", path=ds.root)
+    wanted = {int(s) for s in scene_ids}
+    rig = isinstance(ds, RigDataset)
+    out: dict[int, list[list[int]]] = {}
+    for i, t in enumerate(bop.read_multiview_targets(path)):
+        if t.scene_id not in wanted:
+            continue
+        cams = ds.scene_camera(t.scene_id)
+        ims = []
+        for sensor, im in t.views:
+            if rig:
+                if sensor not in ds.sensors:
+                    raise CosyError(f"sensor {sensor!r} is not a sensor of {ds.split_name} "
+                                    f"({', '.join(ds.sensors)})", path=path, where=f"entry {i}")
+                v = ds.view_id(sensor, im)
+            else:
+                if sensor not in (bop.DEFAULT_SENSOR, ds.sensor or ds.eval_sensor):
+                    continue  # another sensor's image: not in this single-sensor run
+                v = int(im)
+            if v not in cams:
+                raise CosyError(f"scene {t.scene_id} has no image {im} of sensor {sensor!r}", path=path,
+                                where=f"entry {i}")
+            ims.append(v)
+        if ims:
+            out.setdefault(t.scene_id, []).append(sorted(set(ims)))
+    return out
+
+
+def make_groups(ds: BopDataset, scene_ids, views_per_group: int | None, grouping: str = "scene") -> list[dict]:
+    """[{scene_id, group_id, im_ids}] for the scenes, images sorted by im_id. ``grouping``: see
+    the ``groups`` setting (:data:`CONFS`)."""
+    from ..io.dataset import RigDataset
+
     groups = []
+    if grouping == "targets":
+        by_scene = target_groups(ds, scene_ids)
+        for s in scene_ids:
+            for g, c in enumerate(by_scene.get(int(s), [])):
+                groups.append({"scene_id": int(s), "group_id": g, "im_ids": [int(x) for x in c]})
+        return groups
+    if grouping == "instant":
+        if not isinstance(ds, RigDataset):
+            raise CosyError("groups 'instant' needs the sensors of a multi-sensor dataset as one rig (sensor 'rig')",
+                            path=ds.split_dir)
+        for s in scene_ids:
+            by_im: dict[int, list[int]] = {}
+            for v in sorted(ds.scene_camera(s)):
+                by_im.setdefault(ds.view_of(v)[1], []).append(int(v))
+            for g, (_, c) in enumerate(sorted(by_im.items())):
+                groups.append({"scene_id": int(s), "group_id": g, "im_ids": c})
+        return groups
     for s in scene_ids:
         ims = sorted(ds.scene_camera(s))
         if views_per_group is None:
@@ -414,7 +480,8 @@ def run(conf: dict, ds: BopDataset, cands: bop.PoseResults, *, progress: bool = 
     score = tab.column("score")
     object_id = np.full(n, -1, dtype=np.int64)
     group_of = np.full(n, -1, dtype=np.int64)
-    groups = make_groups(ds, sorted(int(s) for s in np.unique(scenes)), conf["views_per_group"])
+    groups = make_groups(ds, sorted(int(s) for s in np.unique(scenes)), conf["views_per_group"],
+                         conf.get("groups", "scene"))
     used = sorted(int(o) for o in np.unique(objs))
     resolved = label_groups.resolve(conf["label_groups"], ds)
     table = load_label_table(ds, used, conf["n_points"], conf["symmetry_steps"], resolved) if used else None
@@ -613,7 +680,7 @@ def _write_outputs(tmp: Path, conf: dict, ds: BopDataset, csv_path: Path, cands:
     (tmp / "candidates.csv").write_text(bop.format_results(cands))
     doc = {
         "format": "cosy-match", "version": FORMAT_VERSION, "cosy_version": __version__, "conf": conf,
-        "dataset": str(Path(ds.root).resolve()), "split": ds.split, "candidates": str(Path(csv_path).resolve()),
+        "dataset": str(Path(ds.root).resolve()), "split": ds.split_spec, "candidates": str(Path(csv_path).resolve()),
         "candidates_sha1": file_sha1(csv_path),
         "candidates_copy": "candidates.csv", "known_cameras": conf["known_cameras"],
         "units": {"t": "mm", "poses": "T_cam_a_cam_b maps points of camera b into camera a"},

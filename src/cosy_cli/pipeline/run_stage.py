@@ -35,7 +35,7 @@ from ..conf import merge_conf
 from ..errors import CosyError
 from ..io import atomic
 from ..io import manifest as integrity
-from ..io.dataset import BopDataset
+from ..io.dataset import BopDataset, with_sensor
 from . import units
 from .layout import MANIFEST, RUN_FORMAT, scene_dir
 
@@ -327,13 +327,58 @@ def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progre
     return sorted(results, key=lambda r: r["scene_id"])
 
 
+def plan_groups(ds: BopDataset, groups: str | None) -> tuple[str, str | None, str | None]:
+    """How a run groups the views of ``ds``: (split spec to run on, the sensor whose images get
+    the predictions when the run is a rig (None otherwise), the match stage's ``groups``
+    setting (None: its default)).
+
+    A multi-sensor dataset read without a sensor (or with sensor ``rig``) runs as a rig: all its
+    sensors at once (:class:`~cosy_cli.io.dataset.RigDataset`), cameras known from their
+    extrinsics, grouped by ``test_targets_multiview_bop25.json`` when the dataset has one, else by
+    instant (``groups`` chooses: ``scene`` puts every instant of a static scene in one group);
+    predictions are for the evaluation sensor's images. One sensor of a multi-sensor dataset is
+    grouped by scene; a single-sensor dataset by its multi-view targets file when it has one
+    (without known cameras), else by scene."""
+    from ..io.dataset import RIG, split_spec_sensor
+
+    chosen = split_spec_sensor(ds.split_spec)
+    if ds.is_multi_sensor and chosen in (None, RIG):
+        grouping = groups or ("targets" if ds.multiview_targets_path() is not None else "instant")
+        return with_sensor(ds.split, RIG), ds.eval_sensor, grouping
+    if groups == "instant":
+        raise CosyError("--groups instant groups the sensors of a multi-sensor dataset (no --sensor, or --sensor rig)",
+                        path=ds.split_dir)
+    if groups is None and not ds.is_multi_sensor and ds.multiview_targets_path() is not None:
+        return ds.split_spec, None, "targets"
+    return ds.split_spec, None, groups
+
+
+def write_sensor_results(ds, src: Path, sensor: str, dst: Path) -> None:
+    """The rows of a rig run's BOP results ``src`` (rig views of ``ds``) that are images of
+    ``sensor``, as BOP results of that sensor's im_ids (``dst``, with its manifest)."""
+    import numpy as np
+
+    from ..io import bop
+
+    integrity.verify(src)
+    res = bop.read_results(src)
+    views = res.table["im_id"].to_numpy()
+    of = [ds.view_of(int(v)) for v in views]
+    keep = np.array([s == sensor for s, _ in of], dtype=bool)
+    tab = res.table[keep].reset_index(drop=True).copy()
+    tab["im_id"] = np.array([im for (s, im) in of if s == sensor], dtype=np.int64)
+    text = bop.format_results(bop.PoseResults(tab, res.T_cam_obj[keep]))
+    integrity.write_file_manifest(dst, "cosy run", text.encode("utf-8"))
+    atomic.write_text(dst, text)
+
+
 def main(config: str | dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False, *,
          scene_ids: list[int] | None = None, detections: str | Path | None = None, coco_images=None,
          from_gt: bool = False, model: str | Path | None = None, candidates: str | Path | None = None,
          models_dir: str | Path | None = None, templates_dir: str | Path | None = None,
          scorer_model: str | Path | None = None, overrides: dict | None = None, first: str = "detect",
          last: str = "viz", workers: int = 1, dask_scheduler: str | None = None, log: Callable[[str], None] = print,
-         progress: bool = True) -> dict:
+         progress: bool = True, groups: str | None = None) -> dict:
     """Run the pipeline into the run folder ``out``; returns the manifest (also ``out/run.json``).
 
     Sources of the first stage, at most one: ``detections`` (a BOP or COCO detections file),
@@ -343,6 +388,12 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     every stage. ``overrides``: per-stage settings over the named ``config``. ``templates_dir``:
     templates of the coarse step, built when missing (default ``out/templates``). ``scorer_model``:
     a learned hypothesis scorer for the estimate stage (``cosy train scorer``).
+
+    ``groups``: the match stage's grouping (scene, instant, targets; None: :func:`plan_groups`).
+    A multi-sensor dataset without a sensor in ``split`` (or with ``SPLIT:rig``) runs as a rig
+    (:func:`plan_groups`): its predictions for the evaluation sensor's images are written to
+    ``estimate/candidates_<sensor>.csv`` and ``refine/predictions_<sensor>.csv`` (BOP results of
+    that sensor's im_ids) and evaluated.
     """
     t_start = time.perf_counter()
     if sum(x is not None for x in (detections, candidates, model)) + bool(from_gt) > 1:
@@ -358,6 +409,12 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
     manifest_path = out / MANIFEST
     if out.is_dir() and any(out.iterdir()) and not manifest_path.is_file():
         raise CosyError("exists, is not empty and is not a cosy run folder (no run.json)", path=out)
+    split, rig_sensor, grouping = plan_groups(BopDataset(dataset, split), groups)
+    overrides = {k: dict(v) for k, v in (overrides or {}).items()}
+    if grouping is not None:
+        overrides.setdefault("match", {})["groups"] = grouping
+    if rig_sensor is not None:
+        overrides.setdefault("match", {})["known_cameras"] = True
     ds = BopDataset(dataset, split)
     dataset = Path(dataset).resolve()
     scene_ids = ds.select_scenes(scene_ids)
@@ -389,6 +446,9 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
                 "dataset": str(dataset), "split": split, "scene_ids": scene_ids, "config": config_name,
                 "confs": confs, "source": {"kind": source, "file": source_file},
                 "models_dir": str(models_dir), "status": "running", "stages": old.get("stages", {})}
+    if rig_sensor is not None:
+        manifest["rig"] = {"sensors": ds.sensors, "eval_sensor": rig_sensor, "groups": confs["match"]["groups"],
+                           "view_id": "im_id x number of sensors + index of the sensor"}
     atomic.write_json(manifest_path, manifest)
     force = set(STAGES) if overwrite else set()
 
@@ -434,6 +494,17 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
             merged.append(str(dst.relative_to(out)))
     if {"refine/predictions.csv", "refine/scene.json"} <= set(merged):  # checked by evaluate
         integrity.write_folder_manifest(out / "refine", "cosy run", ("scene.json", "predictions.csv"))
+    eval_split, eval_files = split, {"single_view": (out / "estimate" / "candidates.csv", None),
+                                     "multi_view": (out / "refine" / "predictions.csv", out / "refine" / "scene.json")}
+    if rig_sensor is not None:  # the rig views of the evaluation sensor, as that sensor's images
+        eval_split = with_sensor(ds.split, rig_sensor)
+        for name, rel in (("single_view", "estimate/candidates.csv"), ("multi_view", "refine/predictions.csv")):
+            src = out / rel
+            dst = src.with_name(f"{src.stem}_{rig_sensor}.csv")
+            if src.is_file():
+                write_sensor_results(ds, src, rig_sensor, dst)
+                merged.append(str(dst.relative_to(out)))
+            eval_files[name] = (dst, None)
     single = single_view_counts(sdirs)
     if single["groups"]:
         log(f"run: {single['groups']} single-view group(s) of {single['groups_total']} "
@@ -448,15 +519,14 @@ def main(config: str | dict | None, dataset: str | Path, split: str, out: str | 
             from ..evaluation import evaluate_stage
 
             t_ev, ran_any = 0.0, False
-            for name, pred, sj in (("single_view", out / "estimate" / "candidates.csv", None),
-                                   ("multi_view", out / "refine" / "predictions.csv", out / "refine" / "scene.json")):
+            for name, (pred, sj) in eval_files.items():
                 if not pred.is_file():
                     continue
                 key = units.unit_key("evaluate", confs["evaluate"], {
                     "predictions": _digest_of(pred), "scene_json": _digest_of(sj), "scenes": scene_ids,
-                    "dataset": str(dataset), "split": split})
+                    "dataset": str(dataset), "split": eval_split})
                 ran, dt = units.run_unit(out / "evaluate", name, key, [name], lambda: evaluate_stage.main(
-                    confs["evaluate"], dataset, split, pred, out / "evaluate" / name, overwrite=True, scene_json=sj,
+                    confs["evaluate"], dataset, eval_split, pred, out / "evaluate" / name, overwrite=True, scene_json=sj,
                     models_dir=models_dir, scene_ids=scene_ids, log=lambda m: None, progress=progress),
                     "evaluate" in force)
                 t_ev += dt
@@ -506,7 +576,7 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
         if st:
             n = f" ({st['scenes_run']}/{st['scenes']} scenes)" if "scenes" in st else ""
             lines.append(f"{stage:<10} {st['status'] + n:<18} {st['time_s']:>8.1f}s")
-    lines += ["", wrote_line(out)]
+    lines += ["", wrote_line(out, (manifest.get("rig") or {}).get("eval_sensor"))]
     sv = manifest.get("single_view") or {}
     if sv.get("groups"):
         lines.append(f"single view: {sv['groups']} of {sv['groups_total']} group(s) had one view "
@@ -528,9 +598,11 @@ def summary_lines(manifest: dict, out: Path) -> list[str]:
     return lines
 
 
-def wrote_line(out: Path) -> str:
-    """What the run wrote where (the final predictions, the report): the line after its stages."""
-    made = [rel for rel in ("refine/predictions.csv", "report.html") if (out / rel).is_file()]
+def wrote_line(out: Path, sensor: str | None = None) -> str:
+    """What the run wrote where (the final predictions, the report): the line after its stages.
+    ``sensor``: a rig run's evaluation sensor (its final predictions are that sensor's)."""
+    final = f"refine/predictions_{sensor}.csv" if sensor else "refine/predictions.csv"
+    made = [rel for rel in (final, "report.html") if (out / rel).is_file()]
     return (f"run: wrote {out}" + (f" (final predictions: {made[0]}" + "".join(f", {m}" for m in made[1:]) + ")"
-                                   if "refine/predictions.csv" in made else f" ({', '.join(made)})" if made else "")
+                                   if final in made else f" ({', '.join(made)})" if made else "")
             + "; run.json lists every stage")

@@ -328,20 +328,28 @@ def _dir_size(path: Path) -> int:
 
 
 def _write_scene(scene_dir: Path, scene_id: int, layout: SceneLayout, renderer, K: np.ndarray, width: int,
-                 height: int, rgb_ext: str, progress_bar, pool) -> list[dict]:
+                 height: int, rgb_ext: str, progress_bar, pool, sensor: str | None = None,
+                 gray: bool = False) -> list[dict]:
     """Render and write one scene folder; returns its BOP19 target rows. Image files are
-    encoded by the thread ``pool`` while the next view renders (one view in flight)."""
+    encoded by the thread ``pool`` while the next view renders (one view in flight).
+    ``sensor``: write the multi-sensor layout's folders and files of this sensor
+    (``rgb_<sensor>/`` or, with ``gray``, ``gray_<sensor>/``; ``scene_camera_<sensor>.json``...)."""
+    suffix = f"_{sensor}" if sensor else ""
+    image_folder = ("gray" if gray else "rgb") + suffix
     cams, gts, infos, targets = {}, {}, {}, []
     pending: list = []
     for v in range(len(layout.T_world_cam)):
         r = render_view(renderer, K, layout, v, width, height)
         for f in pending:  # the previous view's files: errors surface here
             f.result()
-        pending = [pool.submit(images.write_rgb, scene_dir / "rgb" / f"{v:06d}{rgb_ext}", r.rgb),
-                   pool.submit(images.write_depth, scene_dir / "depth" / f"{v:06d}.png", r.depth, DEPTH_SCALE)]
+        write_image = images.write_gray if gray else images.write_rgb
+        pending = [pool.submit(write_image, scene_dir / image_folder / f"{v:06d}{rgb_ext}", r.rgb),
+                   pool.submit(images.write_depth, scene_dir / f"depth{suffix}" / f"{v:06d}.png", r.depth,
+                               DEPTH_SCALE)]
         for i in range(len(layout.obj_ids)):
-            pending.append(pool.submit(images.write_mask, scene_dir / "mask" / f"{v:06d}_{i:06d}.png", r.masks[i]))
-            pending.append(pool.submit(images.write_mask, scene_dir / "mask_visib" / f"{v:06d}_{i:06d}.png",
+            pending.append(pool.submit(images.write_mask, scene_dir / f"mask{suffix}" / f"{v:06d}_{i:06d}.png",
+                                       r.masks[i]))
+            pending.append(pool.submit(images.write_mask, scene_dir / f"mask_visib{suffix}" / f"{v:06d}_{i:06d}.png",
                                        r.masks_visib[i]))
         cams[v] = bop.SceneCamera(K=K, depth_scale=DEPTH_SCALE, T_cam_world=invert(layout.T_world_cam[v]))
         gts[v] = [bop.GtInstance(int(o), T) for o, T in zip(layout.obj_ids, r.T_cam_obj)]
@@ -356,9 +364,9 @@ def _write_scene(scene_dir: Path, scene_id: int, layout: SceneLayout, renderer, 
     for f in pending:
         f.result()
     scene_dir.mkdir(parents=True, exist_ok=True)
-    bop.write_scene_camera(scene_dir / "scene_camera.json", cams)
-    bop.write_scene_gt(scene_dir / "scene_gt.json", gts)
-    bop.write_scene_gt_info(scene_dir / "scene_gt_info.json", infos)
+    bop.write_scene_camera(scene_dir / f"scene_camera{suffix}.json", cams)
+    bop.write_scene_gt(scene_dir / f"scene_gt{suffix}.json", gts)
+    bop.write_scene_gt_info(scene_dir / f"scene_gt_info{suffix}.json", infos)
     return targets
 
 

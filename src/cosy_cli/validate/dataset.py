@@ -361,7 +361,10 @@ class _Validator:
                 p.add(ds.root / "camera.json", None, "file not found (expected the dataset camera: fx, fy, cx, cy, "
                       "width, height, depth_scale; image sizes are checked against it)")
             return
-        if ds.camera_file is None and path.name not in names:
+        sensor = ds.sensor or (ds.eval_sensor if ds.is_multi_sensor else None)
+        if sensor and path.name == f"camera_{sensor}.json":
+            self.rep.notes.append(f"sensor {sensor} of {', '.join(ds.sensors)}: camera file {path.name}")
+        elif ds.camera_file is None and path.name not in names:
             self.rep.notes.append(f"camera file: {path.name} (the only camera_*.json; no {' or '.join(names)})")
         self.camera_name = path.name
         try:
