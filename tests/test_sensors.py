@@ -233,3 +233,26 @@ def test_contour_crops_of_a_large_image_blur_only_their_window():
         ref = cv2.warpAffine(cv2.GaussianBlur(img, (0, 0), 0.5 / scale), A[i], (conf.crop, conf.crop),
                              flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         assert np.array_equal(crops[i], ref)
+
+
+def test_verification_compares_a_grey_image_with_the_render_s_grey_levels():
+    """A grey sensor (three equal channels) sees a coloured mesh as grey levels: the colour term of
+    the right pose is as high as on the colour image (it compared red and blue with grey before)."""
+    from painted_part import painted_part_view
+
+    from cosy_cli.singleview.training_free.verify import Verifier, observe
+
+    db, obj, rgb, K, T, box = painted_part_view()
+    g = np.rint(rgb @ np.array([0.299, 0.587, 0.114])).astype(np.uint8)
+    grey = np.repeat(g[..., None], 3, -1)
+    with Verifier(db) as v:
+        o_rgb, o_grey = observe(rgb, K, box, v.conf), observe(grey, K, box, v.conf)
+        assert not o_rgb.grey and o_grey.grey
+        colour = {}
+        for name, o in (("rgb", o_rgb), ("grey", o_grey)):
+            _, terms = v.score([o], np.array([0]), np.array([obj.obj_id]), T[None], terms=True)
+            colour[name] = float(terms["colour"][0])
+        o_grey.grey = False  # as if it were a colour image: red and blue against grey
+        _, terms = v.score([o_grey], np.array([0]), np.array([obj.obj_id]), T[None], terms=True)
+    assert colour["rgb"] > 0.8 and abs(colour["grey"] - colour["rgb"]) < 0.05, colour
+    assert float(terms["colour"][0]) < colour["grey"] - 0.3

@@ -168,6 +168,7 @@ class CropObservation:
     not_bg: np.ndarray     # (S, S) float32 in [0, 1]: 1 - how common the pixel's colour is outside the box
     in_box: np.ndarray     # (S, S) bool
     resp: np.ndarray       # (8, S, S) float32 orientation responses (LINEMOD-like, spread 3x3)
+    grey: bool = False     # a grey image (three equal channels): colours are compared as grey levels
 
 
 def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf) -> CropObservation:
@@ -228,8 +229,9 @@ def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf) -
         for dx in range(3):
             spread |= p[dy:dy + S, dx:dx + S]
     resp = _LUT[:, spread].astype(np.float32) / 255.0
+    grey = bool(np.array_equal(crop[..., 0], crop[..., 1]) and np.array_equal(crop[..., 1], crop[..., 2]))
     return CropObservation(Kc, win, bx, crop.astype(np.float32) / 255.0, dist.astype(np.float32), not_bg, in_box,
-                           resp)
+                           resp, grey)
 
 
 @dataclass
@@ -375,6 +377,11 @@ class Verifier(Closing):
         I = np.stack([obs[d].rgb for d in udet]).reshape(U * SS, 3).T.take(opix, axis=1)  # (3, P) 0..1
         Rv = px.take(fm).view(np.uint8).reshape(-1, 4).T[:3].astype(np.float32, order="C")
         Rv *= np.float32(1.0 / 255.0)
+        grey = np.array([obs[d].grey for d in udet])
+        if grey.any():  # a grey sensor sees the render's luminance (ITU-R BT.601 weights), not its colours
+            gp = grey[ridx].take(mb)
+            Rv[:, gp] = (np.float32(0.299) * Rv[0, gp] + np.float32(0.587) * Rv[1, gp]
+                         + np.float32(0.114) * Rv[2, gp])[None]
         num = sums(I[0] * Rv[0] + I[1] * Rv[1] + I[2] * Rv[2])
         den = sums(Rv[0] * Rv[0] + Rv[1] * Rv[1] + Rv[2] * Rv[2])
         gain_h = np.clip(num / np.maximum(den, 1e-9), 0.3, 3.0).astype(np.float32)
