@@ -256,3 +256,28 @@ def test_verification_compares_a_grey_image_with_the_render_s_grey_levels():
         _, terms = v.score([o_grey], np.array([0]), np.array([obj.obj_id]), T[None], terms=True)
     assert colour["rgb"] > 0.8 and abs(colour["grey"] - colour["rgb"]) < 0.05, colour
     assert float(terms["colour"][0]) < colour["grey"] - 0.3
+
+
+def test_verification_crops_of_a_large_image_are_made_from_their_window():
+    """The verification's crop of a shrunk detection window (4K frame) is warped from the blurred
+    window alone, with the same pixels as the whole image blurred, windows at the borders included."""
+    import cv2
+
+    from cosy_cli.geometry.camera import crop_affine
+    from cosy_cli.singleview.training_free.verify import VerifyConf, observe
+
+    conf = VerifyConf()
+    S = conf.crop
+    rng = np.random.default_rng(0)
+    img = cv2.resize(rng.integers(0, 255, (270, 480, 3)).astype(np.uint8), (3840, 2160))
+    K = np.array([[3000.0, 0, 1919.5], [0, 3000.0, 1079.5], [0, 0, 1]])
+    for box in ([1000, 600, 1400, 1100], [10, 5, 500, 400], [3500, 1900, 3839, 2159], [100, 100, 2000, 2000]):
+        x1, y1, x2, y2 = (float(v) for v in box)
+        side = max(x2 - x1, y2 - y1) * (1 + 2 * conf.margin)
+        cx, cy = (x1 + x2) / 2, (y1 + y2) / 2
+        win = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
+        whole = cv2.GaussianBlur(img, (0, 0), 0.5 * side / S)
+        ref = cv2.warpAffine(whole, crop_affine(win, (S, S)), (S, S), flags=cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_REPLICATE)
+        got = observe(img, K, np.array(box, float), conf).rgb
+        assert np.array_equal(np.rint(got * 255).astype(np.uint8), ref), box
