@@ -78,6 +78,25 @@ def _require(d: Any, key: str, path: Path, where: str) -> Any:
     return d[key]
 
 
+def _json_list(path: Path, items: str) -> list:
+    """The JSON list in ``path`` (a CosyError saying it expected a list of ``items`` otherwise)."""
+    data = load_json(path)
+    if not isinstance(data, list):
+        raise CosyError(f"expected a JSON list of {items}", path=path)
+    return data
+
+
+def _int_fields(d: Any, keys, path: Path, where: str) -> list[int]:
+    """The integer values of ``keys`` of the JSON object ``d`` (a CosyError naming the key otherwise)."""
+    out = []
+    for k in keys:
+        v = _require(d, k, path, where)
+        if not isinstance(v, int) or isinstance(v, bool):
+            raise CosyError(f"{k}: expected an integer, got {v!r}", path=path, where=where)
+        out.append(v)
+    return out
+
+
 def _top_dict(data: Any, path: Path) -> dict:
     if not isinstance(data, dict):
         raise CosyError(f"expected a JSON object keyed by id, got {type(data).__name__}", path=path)
@@ -502,19 +521,10 @@ def read_target_images(path: str | Path) -> tuple[pd.DataFrame, bool]:
     import pandas as pd
 
     path = Path(path)
-    data = load_json(path)
-    if not isinstance(data, list):
-        raise CosyError("expected a JSON list of {scene_id, im_id[, obj_id, inst_count]}", path=path)
+    data = _json_list(path, "{scene_id, im_id[, obj_id, inst_count]}")
     rows = []
     for i, e in enumerate(data):
-        where = f"entry {i}"
-        row = []
-        for k in ("scene_id", "im_id"):
-            v = _require(e, k, path, where)
-            if not isinstance(v, int) or isinstance(v, bool):
-                raise CosyError(f"{k}: expected an integer, got {v!r}", path=path, where=where)
-            row.append(v)
-        rows.append(row)
+        rows.append(_int_fields(e, ("scene_id", "im_id"), path, f"entry {i}"))
     counts = any("inst_count" in e for e in data)
     return pd.DataFrame(rows, columns=["scene_id", "im_id"], dtype=np.int64).drop_duplicates(), counts
 
@@ -527,18 +537,11 @@ def read_targets(path: str | Path) -> pd.DataFrame:
     import pandas as pd
 
     path = Path(path)
-    data = load_json(path)
-    if not isinstance(data, list):
-        raise CosyError("expected a JSON list of {im_id, inst_count, obj_id, scene_id}", path=path)
+    data = _json_list(path, "{im_id, inst_count, obj_id, scene_id}")
     rows = []
     for i, e in enumerate(data):
         where = f"entry {i}"
-        row = []
-        for k in TARGET_COLUMNS:
-            v = _require(e, k, path, where)
-            if not isinstance(v, int) or isinstance(v, bool):
-                raise CosyError(f"{k}: expected an integer, got {v!r}", path=path, where=where)
-            row.append(v)
+        row = _int_fields(e, TARGET_COLUMNS, path, where)
         if row[3] < 1:
             raise CosyError(f"inst_count must be >= 1, got {row[3]}", path=path, where=where)
         rows.append(row)
@@ -562,15 +565,11 @@ def read_multiview_targets(path: str | Path) -> list[MultiviewTarget]:
     ``{"scene_id": S, "im_id": [[SENSOR, IM_ID], ...]}``, one entry per multi-view group. An item
     that is a bare integer is the image of sensor ``default``; other keys of an entry are kept."""
     path = Path(path)
-    data = load_json(path)
-    if not isinstance(data, list):
-        raise CosyError('expected a JSON list of {"scene_id": S, "im_id": [[SENSOR, IM_ID], ...]}', path=path)
+    data = _json_list(path, '{"scene_id": S, "im_id": [[SENSOR, IM_ID], ...]}')
     out = []
     for i, e in enumerate(data):
         where = f"entry {i}"
-        sid = _require(e, "scene_id", path, where)
-        if not isinstance(sid, int) or isinstance(sid, bool):
-            raise CosyError(f"scene_id: expected an integer, got {sid!r}", path=path, where=where)
+        (sid,) = _int_fields(e, ("scene_id",), path, where)
         items = _require(e, "im_id", path, where)
         if not isinstance(items, list) or not items:
             raise CosyError(f"im_id: expected a non-empty list of [SENSOR, IM_ID] pairs, got {items!r}",
