@@ -55,19 +55,26 @@ def _pairs(ctx, param, value):
         raise click.BadParameter(f"expected A:B[:WEIGHT],... such as 6:7:3,4:5, got {value!r}") from None
 
 
+PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "classifier": (), "coarse": (),
+           "refiner": ()}
+
+
 @click.command("train")
 @click.argument("kind", type=click.Choice(["coarse", "refiner", "detector", "classifier", "scorer"]))
 @click.option("--dataset", type=click.Path(path_type=Path), default=None,
               help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered "
-                   "(required but for the scorer, which takes --models).")
+                   "(required but for the scorer and the detector, which can take --models).")
 @click.option("--models", "models_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Scorer: the models folder (obj_XXXXXX.ply in mm + models_info.json) [DATASET/models].")
+              help="Scorer, detector: the models folder (obj_XXXXXX.ply in mm + models_info.json) alone, "
+                   "instead of a dataset [DATASET/models].")
 @click.option("--camera", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Scorer: BOP camera.json of the images it will score (intrinsics, image size) "
+              help="Scorer, detector: BOP camera.json of the images it will see (intrinsics, image size) "
                    "[the camera.json beside the models folder, else 640x480].")
-@click.option("--preset", type=click.Choice(["default", "long"]), default=None,
+@click.option("--preset", type=click.Choice(["default", "long", "real"]), default=None,
               help="Scorer: default (150 shards, 8000 steps: 37 min on 2 cores for the 8 LM-O objects) or long "
-                   "(300 shards, 30000 steps: about 2 h) [default].")
+                   "(300 shards, 30000 steps: about 2 h) [default]. Detector: default, or real (for real "
+                   "photographs: objects often in their own colours, clutter, white balance, saturation, blur, "
+                   "at least 3 objects per image, warm start from the shipped detector, 5000 steps).")
 @click.option("--shards", type=click.IntRange(min=1), default=None,
               help="Scorer: training shards of 24 rendered images each [150; long: 300].")
 @click.option("--split", default="train_pbr", show_default=True,
@@ -127,6 +134,9 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     Resumable: Ctrl-C or SIGTERM (e.g. `kill PID` of a background run) saves
     a checkpoint; --resume continues (with a larger --iterations to train longer).
     """
+    if preset is not None and preset not in PRESETS[kind]:
+        raise click.UsageError(f"--preset {preset} is not a preset of the {kind} (its presets: "
+                               f"{', '.join(PRESETS[kind]) or 'none'})")
     if kind == "scorer":
         if backbone is not None or crop is not None or input_size is not None or init is not None:
             raise click.UsageError("--backbone, --crop, --input and --init are not for the scorer")
@@ -140,10 +150,15 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         scorer_train.main(conf, models_dir if models_dir is not None else Path(dataset) / "models", out,
                           overwrite=overwrite, camera=camera, resume=resume, log=console.echo, progress=True)
         return
-    if dataset is None:
-        raise click.UsageError("Missing option '--dataset'.")
-    if models_dir is not None or camera is not None or preset is not None or shards is not None:
-        raise click.UsageError("--models, --camera, --preset and --shards are for the scorer")
+    if kind == "detector" and models_dir is not None:
+        if dataset is not None:
+            raise click.UsageError("give the detector --dataset DIR or --models DIR, not both")
+    elif dataset is None:
+        raise click.UsageError("Missing option '--dataset'" + (" (or --models DIR)." if kind == "detector" else "."))
+    if kind != "detector" and (models_dir is not None or camera is not None):
+        raise click.UsageError("--models and --camera are for the scorer and the detector")
+    if shards is not None:
+        raise click.UsageError("--shards is for the scorer")
     if kind == "classifier":
         if backbone is not None or crop is not None or input_size is not None:
             raise click.UsageError("--backbone, --crop and --input are not for the box classifier")
@@ -165,12 +180,12 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
 
         if p_pair is None and confusable:
             p_pair = 0.5
-        conf = det_train.resolve_conf(None, input_size=input_size, iterations=iterations, batch_size=batch_size,
+        conf = det_train.resolve_conf(preset, input_size=input_size, iterations=iterations, batch_size=batch_size,
                                       lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
                                       seed=seed, checkpoint_every=checkpoint_every, init=init,
                                       class_weights=class_weights, confusable=confusable, p_pair=p_pair)
         det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
-                       progress=True)
+                       progress=True, models_dir=models_dir, camera=camera)
         return
     if input_size is not None or init is not None or class_weights or confusable or p_pair is not None:
         raise click.UsageError("--input, --init, --class-weights, --confusable and --p-pair are for the detector; "

@@ -114,6 +114,9 @@ class _RestPoses:
         return R, -float(p[:, 2].min()), float(np.linalg.norm(p[:, :2], axis=1).max())
 
 
+DISTRACTOR_ID0 = 900_000  # renderer ids of clutter meshes (their own ids + this), apart from the objects'
+
+
 class DetectionSampleGenerator(RendererOwner):
     """Random rendered training images of the objects ``meshes`` ({obj_id: trimesh.Trimesh, mm}).
 

@@ -68,12 +68,29 @@ DEFAULT_CONF = {
     "workers": 0,
     "checkpoint_every": 200,
     "log_every": 20,
+    # appearance of the rendered scenes (the generator's defaults: the stream of earlier runs unchanged)
+    "p_mesh_colors": 0.0,         # probability that an object of a coloured mesh keeps its own colours
+    "max_distractors": 0,         # unlabelled clutter: up to this many of cosy synth's shapes per image
+    "gain_jitter": 0.1,           # per-channel gain U(1 -+ this) (white balance)
+    "saturation": [1.0, 1.0],     # saturation factor range
+    "blur": [0.25, 0.3, 1.0],     # probability, sigma range (px) of a Gaussian blur
+    "min_objects": 1,             # labelled objects per image, at least
+}
+
+CONFS = {
+    "default": DEFAULT_CONF,
+    # onboarding for real photographs from the meshes alone (cosy train detector --models DIR --preset real):
+    # the objects in their own colours more often than not, clutter, white balance, saturation, blur, busy
+    # scenes, a warm start from the shipped detector, and a budget of about 50 min on 2 CPU cores
+    "real": dict(DEFAULT_CONF, p_mesh_colors=0.6, max_distractors=4, gain_jitter=0.25, saturation=[0.6, 1.3],
+                 blur=[0.6, 0.4, 1.5], min_objects=3, iterations=5000, warmup=200, lr=5e-4, workers=2,
+                 init="shipped"),
 }
 
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     """Defaults, then ``conf``, then the overrides that are not None; checked."""
-    c = merge_conf({"default": DEFAULT_CONF}, conf or {}, overrides, default="default", what="detector training")
+    c = merge_conf(CONFS, conf, overrides, default="default", what="detector training")
     if c["kind"] != "detector":
         raise CosyError(f"kind must be detector here, not {c['kind']!r}")
     c["input_size"] = [int(v) for v in c["input_size"]]
@@ -82,8 +99,16 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     for k in ("stride", "fpn", "head", "iterations", "batch_size", "warmup", "max_objects", "seed", "workers",
               "checkpoint_every", "log_every"):
         c[k] = int(c[k])
-    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair"):
+    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair", "p_mesh_colors", "gain_jitter"):
         c[k] = float(c[k])
+    c["max_distractors"], c["min_objects"] = int(c["max_distractors"]), int(c["min_objects"])
+    c["saturation"], c["blur"] = [float(v) for v in c["saturation"]], [float(v) for v in c["blur"]]
+    if not (0 <= c["p_mesh_colors"] <= 1 and 0 <= c["gain_jitter"] < 1 and c["max_distractors"] >= 0
+            and c["min_objects"] >= 1 and len(c["saturation"]) == 2 and 0 < c["saturation"][0] <= c["saturation"][1]
+            and len(c["blur"]) == 3 and 0 <= c["blur"][0] <= 1 and 0 < c["blur"][1] <= c["blur"][2]):
+        raise CosyError("detector appearance settings out of range: p_mesh_colors in [0, 1], gain_jitter in [0, 1), "
+                        "max_distractors >= 0, min_objects >= 1, saturation [low, high] > 0, blur [probability, "
+                        "sigma low, sigma high]")
     try:
         cw = c["class_weights"]
         c["class_weights"] = ({str(int(k)): float(v) for k, v in dict(cw).items()} if cw else None)
@@ -99,6 +124,10 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
                         "[obj_a, obj_b] or [obj_a, obj_b, weight] pairs of two different objects") from None
     if not 0 <= c["p_pair"] <= 1:
         raise CosyError(f"p_pair must be in [0, 1], got {c['p_pair']}")
+    if c["init"] == "shipped":  # the detector that ships with cosy (its backbone; the heads follow the objects)
+        from ..shipped import shipped
+
+        c["init"] = str(shipped("detector.onnx"))
     c["init"] = str(c["init"]) if c["init"] else None
     if c["schedule"] not in ("constant", "cosine"):
         raise CosyError(f"schedule must be constant or cosine, not {c['schedule']!r}")
@@ -124,9 +153,32 @@ def model_config(conf: dict, obj_ids):
                           head=conf["head"])
 
 
-def load_dataset_objects(dataset: str | Path):
-    """({obj_id: trimesh mesh (mm)}, K (3x3), (width, height)) of a BOP dataset folder."""
-    db, K, size = loop.load_dataset(dataset)
+def load_dataset_objects(dataset: str | Path | None, models_dir: str | Path | None = None,
+                         camera: str | Path | None = None):
+    """({obj_id: trimesh mesh (mm)}, K (3x3), (width, height)) of a BOP dataset folder, or of a
+    models folder alone (``models_dir``: obj_XXXXXX.ply in mm + models_info.json; its images' camera
+    ``camera``, a BOP camera.json: by default the one beside the models folder, else 640 x 480)."""
+    from ..io import bop
+
+    if models_dir is None:
+        db, K, size = loop.load_dataset(dataset)
+    else:
+        from ..objects import ObjectDatabase
+
+        models_dir = Path(models_dir)
+        if not (models_dir / "models_info.json").is_file():
+            raise CosyError("not a BOP models folder (no models_info.json)", path=models_dir)
+        db = ObjectDatabase.from_models_dir(models_dir)
+        if len(db) == 0:
+            raise CosyError("no objects in models_info.json", path=models_dir / "models_info.json")
+        K = size = None
+    if camera is not None or models_dir is not None:
+        cam = Path(camera) if camera is not None else Path(models_dir).parent / "camera.json"
+        if cam.is_file():
+            ci = bop.read_camera(cam)
+            K, size = ci.K, (ci.width, ci.height)
+        elif camera is not None:
+            raise CosyError("camera file not found", path=cam)
     meshes = {int(o.obj_id): o.mesh for o in db}
     if K is not None:
         return meshes, K, size
@@ -237,10 +289,12 @@ def _to_device(t: dict, device):
     return out
 
 
-def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False,
-         resume: bool = False, log: Callable[[str], None] = print, progress: bool = True) -> dict:
+def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: str | Path, overwrite: bool = False,
+         resume: bool = False, log: Callable[[str], None] = print, progress: bool = True, *,
+         models_dir: str | Path | None = None, camera: str | Path | None = None) -> dict:
     """Train (or resume) a detector in run folder ``out``; returns {"step", "samples", "loss",
-    "checkpoint"}. See the module docstring."""
+    "checkpoint"}. The objects: those of the BOP ``dataset`` folder, or of ``models_dir`` alone
+    (with ``camera``, see :func:`load_dataset_objects`). See the module docstring."""
     import torch
 
     from .data import DetectionSampleGenerator, DetectionStream, batch_targets
@@ -250,10 +304,12 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     out = Path(out)
     loop.check_run_folder(out, resume, overwrite)
 
-    meshes, K, image_size = load_dataset_objects(dataset)
+    meshes, K, image_size = load_dataset_objects(dataset, models_dir, camera)
     obj_ids = sorted(meshes)
-    record = dict(conf, dataset=str(Path(dataset).resolve()), split=split, obj_ids=obj_ids,
-                  camera_K=np.asarray(K).tolist(), image_size=list(image_size))
+    source = {"dataset": str(Path(dataset).resolve())} if models_dir is None else \
+        {"models": str(Path(models_dir).resolve())}
+    record = dict(conf, **source, split=split, obj_ids=obj_ids, camera_K=np.asarray(K).tolist(),
+                  image_size=list(image_size))
     named = {int(k) for k in conf["class_weights"] or {}} | {int(o) for r in conf["confusable"] or [] for o in r[:2]}
     unknown = sorted(named - set(obj_ids))
     if unknown:
@@ -278,6 +334,15 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
     gen_kw = dict(max_objects=conf["max_objects"], p_table=conf["p_table"], min_visib=conf["min_visib"],
                   class_weights={int(k): v for k, v in (conf["class_weights"] or {}).items()} or None,
                   confusable=conf["confusable"], p_pair=conf["p_pair"])
+    appearance = {k: conf[k] for k in ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects")}
+    if appearance != {k: DEFAULT_CONF[k] for k in appearance}:  # else the generator's defaults, as before
+        gen_kw.update(appearance)
+    if conf["max_distractors"] > 0:
+        from ..synth.objects import object_meshes
+        from .data import DISTRACTOR_ID0
+
+        gen_kw.update(distractors={DISTRACTOR_ID0 + k: m for k, m in object_meshes().items()},
+                      max_distractors=conf["max_distractors"])
     if ckpt is None and conf["init"]:  # warm start, BatchNorm recalibrated on rendered images of the run's data
         calib = DetectionSampleGenerator(meshes, K, image_size, mcfg.input_size, seed=np.random.SeedSequence(
             [conf["seed"], 7919]), obj_ids=obj_ids, **gen_kw)

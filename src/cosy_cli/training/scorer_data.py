@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..detection.data import DISTRACTOR_ID0  # renderer ids of the clutter meshes
 from ..io.atomic import atomic_path
 from .scorer_target import ar_contribution, max_errors
 
@@ -48,9 +49,6 @@ DATA_DEFAULTS = {
     "blur": [0.6, 0.4, 1.5],       # probability, sigma range (px of the full image)
     "n_points": 300,
 }
-
-
-DISTRACTOR_ID0 = 900_000  # renderer ids of the clutter meshes (object ids + this)
 
 
 def shard_path(folder: Path, i: int) -> Path:
