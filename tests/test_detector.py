@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -373,3 +374,40 @@ def test_bench_detect_makes_the_seed_set_and_scores_gt_boxes(tmp_path):
     assert "none" in bench_detect.confusions_line(s)
     assert bench_detect.synth_cmd(ds, 7, 6, 6, 8)[-9:] == ["--scenes", "6", "--views", "6", "--objects", "8",
                                                           "--seed", "7", "--quiet"]
+
+
+def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
+    """`cosy train detector --models DIR --preset real`: the meshes without a dataset, the camera beside
+    them, the appearance of real photographs (own colours, clutter, jitter, busy scenes) and a warm
+    start from the shipped detector; the default preset keeps the generator's own defaults."""
+    from cosy_cli.detection import data as det_data
+    from cosy_cli.detection.train import DEFAULT_CONF, resolve_conf
+
+    real, default = resolve_conf("real"), resolve_conf()
+    assert real["p_mesh_colors"] == 0.6 and real["max_distractors"] == 4 and real["min_objects"] == 3
+    assert real["init"].endswith("detector.onnx") and Path(real["init"]).is_file()
+    import inspect
+
+    gen = inspect.signature(det_data.DetectionSampleGenerator.__init__).parameters
+    for k in ("p_mesh_colors", "max_distractors", "gain_jitter", "min_objects"):
+        assert default[k] == gen[k].default, k  # the default preset draws the scenes it always drew
+    assert tuple(default["saturation"]) == gen["saturation"].default and tuple(default["blur"]) == gen["blur"].default
+    with pytest.raises(CosyError, match="appearance"):
+        resolve_conf(None, p_mesh_colors=1.5)
+
+    out = tmp_path / "run"
+    args = ["train", "detector", "--models", str(DATA / "models"), "--out", str(out), "--preset", "real",
+            "--input", "64x48", "--batch-size", "2", "--workers", "0", "--warmup", "1", "--iterations", "2"]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    rec = json.loads((out / "config.json").read_text())
+    assert rec["models"] == str((DATA / "models").resolve()) and "dataset" not in rec
+    assert rec["image_size"] == [640, 480] and rec["p_mesh_colors"] == 0.6 and rec["max_distractors"] == 4
+    assert "warm start from" in r.output
+    # what the CLI refuses: both sources, the scorer's preset, --models for the pose networks
+    for bad, said in ((args + ["--dataset", str(DATA)], "not both"), ([a if a != "real" else "long" for a in args],
+                      "not a preset of the detector"),
+                      (["train", "refiner", "--models", str(DATA / "models"), "--dataset", str(DATA), "--out",
+                        str(tmp_path / "r")], "--models and --camera are for")):
+        r = CliRunner().invoke(cli, bad)
+        assert r.exit_code == 2 and said in r.output, r.output
