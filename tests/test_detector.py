@@ -404,6 +404,10 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
     assert rec["models"] == str((DATA / "models").resolve()) and "dataset" not in rec
     assert rec["image_size"] == [640, 480] and rec["p_mesh_colors"] == 0.6 and rec["max_distractors"] == 4
     assert "warm start from" in r.output
+    r = CliRunner().invoke(cli, ["export", "--run", str(out), "--out", str(tmp_path / "det.onnx")])
+    assert r.exit_code == 0, r.output
+    card = (tmp_path / "det.md").read_text()
+    assert "the models folder `data_samples/models`" in card and "own mesh colours with probability 0.6" in card
     # what the CLI refuses: both sources, the scorer's preset, --models for the pose networks
     for bad, said in ((args + ["--dataset", str(DATA)], "not both"), ([a if a != "real" else "long" for a in args],
                       "not a preset of the detector"),

@@ -513,7 +513,8 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"# {out.name}: cosy 2D object detector",
         "",
         f"- objects (category_id = BOP obj_id): {', '.join(str(o) for o in cfg.obj_ids)} "
-        f"(models of the dataset `{Path(c['dataset']).name}`)",
+        + (f"(models of the dataset `{Path(c['dataset']).name}`)" if c.get("dataset")
+           else f"(the models folder `{Path(c['models']).parent.name}/{Path(c['models']).name}`)"),
         f"- input: RGB resized to {w} x {h} px (width x height), values in [0, 1]; any image size is resized "
         "by the runner (`cosy_cli.detection.network.OnnxDetector`)",
         f"- architecture: anchor-free centre-heatmap detector (CenterNet-style): plain conv + BatchNorm + ReLU "
@@ -526,7 +527,9 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"- training data: on-the-fly domain-randomised renders of those models (random layouts on a table or "
         f"floating, colours, lights, backgrounds, occlusion, truncation; split '{c['split']}' names the dataset, "
         "its images were not used); boxes = visible-mask boxes, instances under "
-        f"{c['min_visib']:g} visible ignored",
+        f"{c['min_visib']:g} visible ignored; appearance: own mesh colours with probability "
+        f"{c.get('p_mesh_colors', 0.0):g}, up to {c.get('max_distractors', 0)} clutter shapes, at least "
+        f"{c.get('min_objects', 1)} objects per image",
         f"- training: {ck['step']} steps, {ck['samples']} images, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         *_sampling_lines(c),
