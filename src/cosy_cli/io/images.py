@@ -79,11 +79,17 @@ def _imwrite(path: Path, img: np.ndarray, params: list[int] | None = None) -> No
         buf.tofile(str(tmp))
 
 
+def _photo_params(path: Path, jpg_quality: int) -> list[int]:
+    """Encoder settings of a photo by its file name: JPEG quality, else PNG compression 6."""
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        return [cv2.IMWRITE_JPEG_QUALITY, jpg_quality]
+    return [cv2.IMWRITE_PNG_COMPRESSION, 6]
+
+
 def write_rgb(path: str | Path, rgb: np.ndarray, jpg_quality: int = 95) -> None:
     path = Path(path)
     img = cv2.cvtColor(np.asarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR)
-    params = [cv2.IMWRITE_JPEG_QUALITY, jpg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else [cv2.IMWRITE_PNG_COMPRESSION, 6]
-    _imwrite(path, img, params)
+    _imwrite(path, img, _photo_params(path, jpg_quality))
 
 
 def write_gray(path: str | Path, rgb: np.ndarray, jpg_quality: int = 95) -> None:
@@ -92,8 +98,7 @@ def write_gray(path: str | Path, rgb: np.ndarray, jpg_quality: int = 95) -> None
     img = np.asarray(rgb, dtype=np.uint8)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-    params = [cv2.IMWRITE_JPEG_QUALITY, jpg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else [cv2.IMWRITE_PNG_COMPRESSION, 6]
-    _imwrite(path, img, params)
+    _imwrite(path, img, _photo_params(path, jpg_quality))
 
 
 def is_gray_file(path: str | Path) -> bool:

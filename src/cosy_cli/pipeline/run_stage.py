@@ -296,6 +296,12 @@ def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progre
 
     bar = progress_bar(total=len(tasks), desc="scenes", unit="scene", enabled=progress)
     results = []
+
+    def finished(result: dict) -> None:  # a scene's result, its warnings issued here (summarised by the run)
+        console.replay(result.pop("warnings", []))
+        results.append(result)
+        bar.update(1)
+
     try:
         if dask_scheduler:
             from distributed import Client, as_completed
@@ -303,9 +309,7 @@ def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progre
             with Client(dask_scheduler) as client:
                 futures = client.map(run_scene, tasks, pure=False)
                 for fut in as_completed(futures):
-                    results.append(fut.result())
-                    console.replay(results[-1].pop("warnings", []))
-                    bar.update(1)
+                    finished(fut.result())
         elif workers > 1:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor, as_completed as done_first
@@ -314,14 +318,10 @@ def _execute(tasks: list[dict], workers: int, dask_scheduler: str | None, progre
             with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
                 futs = [pool.submit(run_scene, {**t, "single_thread": True}) for t in tasks]
                 for fut in done_first(futs):
-                    results.append(fut.result())
-                    console.replay(results[-1].pop("warnings", []))
-                    bar.update(1)
+                    finished(fut.result())
         else:
             for t in tasks:
-                results.append(run_scene(t))
-                console.replay(results[-1].pop("warnings", []))
-                bar.update(1)
+                finished(run_scene(t))
     finally:
         bar.close()
     return sorted(results, key=lambda r: r["scene_id"])
