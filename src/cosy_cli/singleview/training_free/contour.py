@@ -55,8 +55,6 @@ edges); crop pixels have their centres at integer coordinates.
 
 from __future__ import annotations
 
-import math
-
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,6 +63,7 @@ from ...errors import CosyError
 from ...geometry.camera import crop_affine, crop_intrinsics
 from ...geometry.rotations import axis_angle_to_matrix
 from ...lifetime import Closing
+from .verify import window_crop
 
 
 @dataclass
@@ -135,31 +134,8 @@ def observe_windows(rgb: np.ndarray, K: np.ndarray, boxes: np.ndarray, conf: Con
     crops = np.zeros((len(win), S, S, 3), np.uint8)
     gx = np.zeros((len(win), S, S, 3), np.float32)
     gy = np.zeros_like(gx)
-    H, W = src.shape[:2]
-    work = None  # a copy of the image whose detection window is blurred in place, then restored
-    for i in range(len(win)):  # one warp per detection
-        scale = S / (win[i, 2] - win[i, 0])
-        img = src
-        if scale < 0.7:  # anti-alias when shrinking: blur the window and a margin beyond the kernel only
-            sigma = 0.5 / scale
-            r = int(math.ceil(4 * sigma)) + 2
-            X0, Y0 = max(int(math.floor(win[i, 0])) - r, 0), max(int(math.floor(win[i, 1])) - r, 0)
-            X1, Y1 = min(int(math.ceil(win[i, 2])) + r, W), min(int(math.ceil(win[i, 3])) + r, H)
-            if X1 > X0 and Y1 > Y0 and (X1 - X0 < W or Y1 - Y0 < H):
-                # the pixels blurring the whole image gives where the warp samples, in the same image
-                # frame (the warp's fixed-point coordinates unchanged): per detection, work that
-                # scales with the window, not with the image (4K images)
-                if work is None:
-                    work = src.copy()
-                work[Y0:Y1, X0:X1] = cv2.GaussianBlur(np.ascontiguousarray(src[Y0:Y1, X0:X1]), (0, 0), sigma)
-                crops[i] = cv2.warpAffine(work, A[i], (S, S), flags=cv2.INTER_LINEAR,
-                                          borderMode=cv2.BORDER_REPLICATE)
-                work[Y0:Y1, X0:X1] = src[Y0:Y1, X0:X1]
-                img = None
-            else:
-                img = cv2.GaussianBlur(src, (0, 0), sigma)
-        if img is not None:
-            crops[i] = cv2.warpAffine(img, A[i], (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    for i in range(len(win)):  # one warp per detection, of its window only (4K images)
+        crops[i] = window_crop(src, win[i], A[i], S)
         crop = crops[i].astype(np.float32)
         if conf.blur > 0:
             crop = cv2.GaussianBlur(crop, (0, 0), conf.blur)

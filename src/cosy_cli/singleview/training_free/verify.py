@@ -171,6 +171,29 @@ class CropObservation:
     grey: bool = False     # a grey image (three equal channels): colours are compared as grey levels
 
 
+def window_crop(src: np.ndarray, win: np.ndarray, A: np.ndarray, S: int) -> np.ndarray:
+    """The (S, S) crop of the square window ``win`` (x1, y1, x2, y2 px) of the image ``src`` by the
+    affine map ``A`` (:func:`~cosy_cli.geometry.camera.crop_affine`), anti-aliased when the window
+    shrinks (scale < 0.7: a Gaussian blur of 0.5 / scale px). Only the window and a margin beyond
+    the blur's kernel are blurred and warped (no copy of the whole image per detection: a 4K frame
+    is 25 MB): the same pixels as the whole image blurred, where the warp samples."""
+    import cv2
+
+    scale = S / (win[2] - win[0])
+    if scale < 0.7:
+        sigma = 0.5 / scale
+        r = int(math.ceil(4 * sigma)) + 2
+        H, W = src.shape[:2]
+        X0, Y0 = max(int(math.floor(win[0])) - r, 0), max(int(math.floor(win[1])) - r, 0)
+        X1, Y1 = min(int(math.ceil(win[2])) + r, W), min(int(math.ceil(win[3])) + r, H)
+        if X1 > X0 and Y1 > Y0 and (X1 - X0 < W or Y1 - Y0 < H):
+            src = cv2.GaussianBlur(np.ascontiguousarray(src[Y0:Y1, X0:X1]), (0, 0), sigma)
+            A = A + np.array([[0.0, 0.0, A[0, 0] * X0 + A[0, 1] * Y0], [0.0, 0.0, A[1, 0] * X0 + A[1, 1] * Y0]])
+        else:
+            src = cv2.GaussianBlur(src, (0, 0), sigma)
+    return cv2.warpAffine(src, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
 def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf) -> CropObservation:
     import cv2
 
@@ -181,23 +204,8 @@ def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf) -
     win = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
     A = crop_affine(win, (S, S))
     Kc = crop_intrinsics(K, win, (S, S))
-    src = np.asarray(rgb)
+    crop = window_crop(np.asarray(rgb), win, A, S)
     scale = S / side
-    if scale < 0.7:  # anti-alias when shrinking: blur only the window and a margin beyond the kernel
-        sigma = 0.5 / scale
-        r = int(math.ceil(4 * sigma)) + 2
-        H, W = src.shape[:2]
-        X0, Y0 = max(int(math.floor(win[0])) - r, 0), max(int(math.floor(win[1])) - r, 0)
-        X1, Y1 = min(int(math.ceil(win[2])) + r, W), min(int(math.ceil(win[3])) + r, H)
-        if X1 > X0 and Y1 > Y0 and (X1 - X0 < W or Y1 - Y0 < H):
-            # the window and a margin beyond the kernel, blurred and warped on their own (no copy of
-            # the whole image per detection: a 4K frame is 25 MB); where the warp samples, the pixels
-            # are those of the whole image blurred, up to the warp's fixed-point rounding
-            src = cv2.GaussianBlur(np.ascontiguousarray(src[Y0:Y1, X0:X1]), (0, 0), sigma)
-            A = A + np.array([[0.0, 0.0, A[0, 0] * X0 + A[0, 1] * Y0], [0.0, 0.0, A[1, 0] * X0 + A[1, 1] * Y0]])
-        else:
-            src = cv2.GaussianBlur(src, (0, 0), sigma)
-    crop = cv2.warpAffine(src, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     edges = np.zeros((S, S), np.uint8)
     for c in range(3):
         edges |= cv2.Canny(crop[..., c], *conf.canny, L2gradient=True)
