@@ -194,6 +194,39 @@ def prepare_lmo_depth(src: Path, dst: Path) -> Path:
     return dst
 
 
+def gt_mask_detections(root: Path, split: str, work: Path, min_visib: float = 0.1) -> Path:
+    """A detections JSON of the visible GT boxes (visib_fract >= min_visib, as --from-gt) with each
+    instance's visible mask as a BOP RLE ``segmentation``: what a perfect segmenter would give (an
+    upper bound for masks from BOP's default detections). Masks: the split's ``mask_visib/`` PNGs,
+    else rendered from the GT poses by ``cosy gt-info --masks`` in a copy of the dataset."""
+    import cv2
+
+    from cosy_cli.dataset_tools import gt_info
+    from cosy_cli.io.masks import encode_mask
+
+    if not any((root / split).glob("*/mask_visib")):
+        copy = work / f"{root.name}_masks"
+        if not any(copy.glob(f"{split}/*/mask_visib")):
+            shutil.rmtree(copy, ignore_errors=True)
+            shutil.copytree(root, copy)
+            gt_info.main(None, copy, split, masks=True, overwrite=True, progress=False)
+        root = copy
+    dets = []
+    for sd in sorted(p for p in (root / split).iterdir() if p.is_dir()):
+        gt = json.loads((sd / "scene_gt.json").read_text())
+        info = json.loads((sd / "scene_gt_info.json").read_text())
+        for k in sorted(gt, key=int):
+            for j, (g, i) in enumerate(zip(gt[k], info[k])):
+                if i["visib_fract"] < min_visib:
+                    continue
+                m = cv2.imread(str(sd / "mask_visib" / f"{int(k):06d}_{j:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+                dets.append({"scene_id": int(sd.name), "image_id": int(k), "category_id": g["obj_id"], "score": 1.0,
+                             "bbox": i["bbox_visib"], "time": -1, "segmentation": encode_mask(m)})
+    out = work / f"{root.name}_{split}_gt_masks.json"
+    out.write_text(json.dumps(dets))
+    return out
+
+
 def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path, im_ids=None,
         scorer: Path | None = None) -> None:
     from cosy_cli.evaluation import evaluate_stage
@@ -212,12 +245,15 @@ def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path
     ds = BopDataset(root, split)
     db = ObjectDatabase.from_models_dir(root / ("models_eval" if (root / "models_eval").is_dir() else "models"))
     for name in variants:
-        base, _, learned = name.partition("+scorer")
+        # NAME+masks: the GT boxes with the GT visible masks as segmentations (a perfect segmenter)
+        plain, masks, _ = name.partition("+masks")
+        base, _, learned = plain.partition("+scorer")
         conf = estimate_stage.resolve_conf("default", **VARIANTS[base])
         out = work / f"{data}_{name}.csv"
-        s = estimate_stage.main(conf, root, split, out, overwrite=True, scene_ids=scene_ids, from_gt=True,
-                                templates_dir=templates_dir, scorer_model=scorer if name != base else None,
-                                log=lambda *_: None, progress=False)
+        dets = gt_mask_detections(root, split, work) if masks else None
+        s = estimate_stage.main(conf, root, split, out, overwrite=True, scene_ids=scene_ids, from_gt=dets is None,
+                                detections=dets, templates_dir=templates_dir,
+                                scorer_model=scorer if plain != base else None, log=lambda *_: None, progress=False)
         sc = evaluate_stage.main(None, root, split, out, work / f"eval_{data}_{name}", overwrite=True,
                                  targets=targets, metrics=metrics, scene_ids=scene_ids, log=lambda *_: None,
                                  progress=False)
@@ -326,7 +362,9 @@ def main() -> None:
     ap.add_argument("--data", choices=("lmo", "lmo-depth", "ycbv"), default="lmo")
     ap.add_argument("--scenes", default="even", help="lmo: even | odd | all | comma-separated ids")
     ap.add_argument("--frames", default="6-10", help="ycbv: image ids evaluated, e.g. 6-10 (held out) or 1-5")
-    ap.add_argument("--variants", default="old,new", help=f"comma-separated of {', '.join(VARIANTS)}")
+    ap.add_argument("--variants", default="old,new",
+                    help=f"comma-separated of {', '.join(VARIANTS)}; NAME+masks: with the GT visible masks as the "
+                         "detections' segmentations")
     ap.add_argument("--sweep", default=None,
                     help=f"lmo only: compare verification settings side by side instead ({', '.join(SWEEP)} or all)")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv")

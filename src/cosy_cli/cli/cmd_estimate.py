@@ -60,6 +60,10 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
               help="Templates: refine the best hypothesis on the image: a local search on the rendering score, "
                    "aligning its outline with the image's (contour), or both [auto: contour when no depth "
                    "refinement runs].")
+@click.option("--masks", type=click.Choice(["auto", "none"]), default=None,
+              help="Detections' segmentations (a `segmentation` RLE or polygons per detection, as in BOP's default "
+                   "detections): auto uses them where present, in the verification of the template hypotheses "
+                   "(each pose's silhouette against the mask); none: boxes only [auto].")
 @click.option("--templates-dir", type=click.Path(path_type=Path), default=None,
               help="Templates folder (built by `cosy templates` if missing) [OUT's folder/templates].")
 @click.option("--scorer", "scorer_model", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -70,8 +74,8 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
-             depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, templates_dir,
-             scorer_model, providers, batch_size,
+             depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, masks,
+             templates_dir, scorer_model, providers, batch_size,
              overwrite) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
@@ -87,7 +91,7 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
                                     refiner_iterations=refiner_iterations, top_k=top_k, icp_screen=icp_screen,
                                     verify_top=verify_top,
                                     hypotheses=hypotheses,
-                                    rgb_refine=rgb_refine, providers=providers,
+                                    rgb_refine=rgb_refine, providers=providers, masks=masks,
                                     batch_size=batch_size)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,

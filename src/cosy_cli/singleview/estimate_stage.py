@@ -82,16 +82,18 @@ CONFS = {
         "rgb_refine": "auto",         # search | contour | search+contour | none | auto (see RGB_REFINE_AUTO)
         "image_weight": 1.0,          # with depth and verification: pick by depth fit + this x image score
         "hypotheses": 1,              # poses per detection written (>1: the verified runners-up in a sidecar CSV)
+        "masks": "auto",              # auto: use the detections' segmentations where they have them | none
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
-              "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1},
+              "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto"},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
-                      "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1},
+                      "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
+                      "masks": "auto"},
 }
 
 
@@ -99,7 +101,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     c = merge_conf(CONFS, conf, overrides, default="default", what="estimate")
     choices = {"coarse": ("network", "templates", "auto"), "refiner": ("network", "none", "auto"),
                "depth_refine": ("icp", "none", "auto"), "providers": ("cpu", "cuda"),
-               "rgb_refine": ("search", "contour", "search+contour", "none", "auto")}
+               "rgb_refine": ("search", "contour", "search+contour", "none", "auto"), "masks": ("auto", "none")}
     for k, allowed in choices.items():
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
@@ -133,6 +135,25 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
 # detections
 # ------------------------------------------------------------------------------------------------
 # DET_COLUMNS and detections_from_gt live in cosy_cli.detection.importers (imported above).
+
+
+def detection_masks(d: pd.DataFrame, shape: tuple[int, int], source: str) -> list | None:
+    """Per row of one image's detections, its (H, W) bool segmentation or None (no segmentation);
+    None when no row has one. A malformed segmentation is an error naming the detection."""
+    from ..io.masks import SegmentationError, decode_segmentation
+
+    out = []
+    for i, row in zip(d.index, d.itertuples(index=False)):
+        seg = getattr(row, "segmentation", None)
+        if seg is None or (isinstance(seg, float) and np.isnan(seg)):
+            out.append(None)
+            continue
+        try:
+            out.append(decode_segmentation(seg, shape))
+        except SegmentationError as e:
+            raise CosyError(f"detection {i} (scene_id {row.scene_id}, im_id {row.im_id}, obj_id {row.obj_id}): "
+                            f"{e}", path=source) from None
+    return out if any(m is not None for m in out) else None
 
 
 def check_detections(dets: pd.DataFrame, ds: BopDataset, scene_ids: list[int], obj_ids: set[int], source: str,
@@ -261,9 +282,11 @@ class Estimator:
             self._renderer = None
 
     def estimate(self, rgb: np.ndarray, depth: np.ndarray | None, K: np.ndarray, boxes: np.ndarray,
-                 obj_ids: np.ndarray) -> ImageEstimate:
+                 obj_ids: np.ndarray, masks=None) -> ImageEstimate:
         """Poses of N detections of one image: rgb (H, W, 3) uint8, depth (H, W) mm or None, K (3, 3),
-        boxes (N, 4) x1, y1, x2, y2 px (pixel-edge), obj_ids (N,)."""
+        boxes (N, 4) x1, y1, x2, y2 px (pixel-edge), obj_ids (N,); masks: None or per detection an
+        (H, W) bool segmentation or None. The training-free path uses them in the verification (the
+        silhouette's IoU with the mask joins the score); ICP and the networks use the boxes."""
         c = self.conf
         N = len(boxes)
         res = ImageEstimate(np.zeros((N, 4, 4)))
@@ -286,7 +309,7 @@ class Estimator:
                 h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=max(nv, c["top_k"]),
                                     params=MatchParams(nms_deg=10.0))
                 # the cascade (coarse copies first) with depth too: see verify's module docstring
-                ranked = self.verifier.rank(rgb, K, boxes, obj_ids, h.T_cam_obj, h.scores)
+                ranked = self.verifier.rank(rgb, K, boxes, obj_ids, h.T_cam_obj, h.scores, masks=masks)
                 hyp, hyp_score = ranked.T_cam_obj[:, :c["top_k"]], ranked.score[:, :c["top_k"]]
                 res.steps["templates"] = h.T_cam_obj[:, 0].copy()
             else:
@@ -551,6 +574,11 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         dets = bop.read_detections(detections)
         source = str(detections)
     dets = check_detections(dets, ds, scene_ids, set(db.obj_ids), source, log)
+    use_masks = conf["masks"] == "auto" and "segmentation" in dets and bool(dets["segmentation"].notna().any())
+    if use_masks:  # recorded only when used: outputs of earlier versions stay up to date
+        run_conf["masks"] = "detections"
+        log(f"estimate: {int(dets['segmentation'].notna().sum())} of {len(dets)} detections have a segmentation: "
+            "used in the verification (--masks none: boxes only)")
 
     templates = None
     if run_conf["coarse"] == "templates":
@@ -590,7 +618,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             ok = ((boxes[:, 2] - boxes[:, 0]) >= 2) & ((boxes[:, 3] - boxes[:, 1]) >= 2)
             skipped_boxes += int((~ok).sum())
             d, boxes = d[ok], boxes[ok]
-            r = est.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy())
+            masks = detection_masks(d, (H, W), source) if use_masks else None
+            r = est.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy(), masks=masks)
             dt = time.perf_counter() - t0
             rows_T.append(r.T)
             if n_hyp > 1:
