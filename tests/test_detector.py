@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -395,23 +396,105 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
     with pytest.raises(CosyError, match="appearance"):
         resolve_conf(None, p_mesh_colors=1.5)
 
-    out = tmp_path / "run"
+    out, photos = tmp_path / "run", tmp_path / "photos"
+    photos.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(photos / f"p{i}.jpg"), np.full((90, 120, 3), 60 * i, np.uint8))
     args = ["train", "detector", "--models", str(DATA / "models"), "--out", str(out), "--preset", "real",
-            "--input", "64x48", "--batch-size", "2", "--workers", "0", "--warmup", "1", "--iterations", "2"]
+            "--input", "64x48", "--batch-size", "2", "--workers", "0", "--warmup", "1", "--iterations", "2",
+            "--backgrounds", str(photos)]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     rec = json.loads((out / "config.json").read_text())
     assert rec["models"] == str((DATA / "models").resolve()) and "dataset" not in rec
     assert rec["image_size"] == [640, 480] and rec["p_mesh_colors"] == 0.6 and rec["max_distractors"] == 4
-    assert "warm start from" in r.output
+    assert "warm start from" in r.output and "2 background photographs" in r.output
     r = CliRunner().invoke(cli, ["export", "--run", str(out), "--out", str(tmp_path / "det.onnx")])
     assert r.exit_code == 0, r.output
     card = (tmp_path / "det.md").read_text()
     assert "the models folder `data_samples/models`" in card and "own mesh colours with probability 0.6" in card
+    assert "photographs of the folder `photos` as the background of 50% of the images" in card
     # what the CLI refuses: both sources, the scorer's preset, --models for the pose networks
     for bad, said in ((args + ["--dataset", str(DATA)], "not both"), ([a if a != "real" else "long" for a in args],
                       "not a preset of the detector"),
                       (["train", "refiner", "--models", str(DATA / "models"), "--dataset", str(DATA), "--out",
-                        str(tmp_path / "r")], "--models and --camera are for")):
+                        str(tmp_path / "r")], "--models and --camera are for"),
+                      (["train", "classifier", "--dataset", str(DATA), "--backgrounds", str(photos), "--out",
+                        str(tmp_path / "c")], "--backgrounds is for the detector"),
+                      ([a if a != str(out) else str(tmp_path / "r2") for a in args[:-2]] + ["--backgrounds",
+                       str(DATA / "models")], "no image")):
         r = CliRunner().invoke(cli, bad)
         assert r.exit_code == 2 and said in r.output, r.output
+
+
+def test_clutter_shapes_and_a_cluttered_backdrop(meshes):
+    """Unlabelled clutter of many shapes and sizes, and a backdrop of it behind the objects: the
+    labels stay those of the objects, the background is no longer empty."""
+    from cosy_cli.detection.data import CLUTTER_ID0, DetectionSampleGenerator, clutter_meshes
+    from cosy_cli.detection.train import resolve_conf
+
+    a, b = clutter_meshes(14, seed=3), clutter_meshes(14, seed=3)
+    assert sorted(a) == list(range(1, 15))
+    assert all(np.allclose(a[k].vertices, b[k].vertices) for k in a)
+    ext = np.array([m.extents for m in a.values()])
+    assert ext.min() > 5 and ext.max() < 450 and len({round(float(e), 3) for e in ext[:, 0]}) == 14
+    assert not np.allclose(clutter_meshes(3, seed=4)[1].extents, a[1].extents)
+
+    m, K, size = meshes
+    clutter = {CLUTTER_ID0 + k: v for k, v in a.items()}
+    fg = {}
+    for backdrop in ((0.0, 0, 0), (1.0, 12, 12)):
+        gen = DetectionSampleGenerator(m, K, size, (160, 120), seed=5, p_table=0.0, max_objects=2,
+                                       distractors=clutter, backdrop=backdrop)
+        rendered = []
+        orig = gen._compose
+        gen._compose = lambda rgb, foreground: (rendered.append(foreground.mean()), orig(rgb, foreground))[1]
+        batch = gen.batch(6)
+        gen.close()
+        fg[backdrop[0]] = float(np.mean(rendered))
+        for lab in batch["labels"]:
+            assert len(lab) <= 2 and (lab < len(m)).all()
+    assert fg[1.0] > fg[0.0] + 0.08, fg  # the backdrop covers a part of what was empty background
+    conf = resolve_conf("real", clutter_shapes=8, backdrop=[0.5, 2, 6])
+    assert conf["backdrop"] == [0.5, 2, 6] and conf["clutter_shapes"] == 8
+    with pytest.raises(CosyError, match="backdrop"):
+        resolve_conf(None, backdrop=[0.5, 6, 2])
+
+
+def test_photographs_as_backgrounds(meshes, tmp_path):
+    """--backgrounds: random windows of the user's photographs fill the background of a share of the
+    images (the objects and their labels unchanged); the folder is read once, shrunk."""
+    from cosy_cli.detection.data import DetectionSampleGenerator, photo_window
+    from cosy_cli.io.images import read_photo_folder
+
+    rng = np.random.default_rng(0)
+    photo = np.zeros((300, 500, 3), np.uint8)
+    photo[:, :250] = (0, 0, 255)  # left half blue, right half red
+    photo[:, 250:] = (255, 0, 0)
+    wins = [photo_window(photo, 48, 64, rng) for _ in range(40)]
+    assert all(w.shape == (48, 64, 3) and w.dtype == np.float32 for w in wins)
+    blue = [float((w[..., 2] > 128).mean()) for w in wins]
+    assert min(blue) < 0.5 < max(blue) and any(0 < b < 1 for b in blue)  # windows differ, some straddle
+    assert all(np.isin(w[..., 1], [0.0]).all() for w in wins)  # only the photo's colours (no green)
+
+    (tmp_path / "a.png").write_bytes(b"")  # not an image: a clear error names it
+    with pytest.raises(CosyError, match="unreadable"):
+        read_photo_folder(tmp_path)
+    (tmp_path / "a.png").unlink()
+    cv2.imwrite(str(tmp_path / "big.jpg"), np.full((1200, 1600, 3), 200, np.uint8))
+    (tmp_path / "notes.txt").write_text("not an image")
+    got = read_photo_folder(tmp_path, max_side=400)
+    assert len(got) == 1 and got[0].shape == (300, 400, 3)
+
+    m, K, size = meshes
+    share = {}
+    for p in (0.0, 1.0):
+        gen = DetectionSampleGenerator(m, K, size, (160, 120), seed=5, p_table=0.0, max_objects=2,
+                                       photos=[photo[:, :250].copy()], p_photo=p)
+        batch = gen.batch(6)
+        gen.close()
+        img = batch["images"].astype(np.float32)
+        share[p] = float(((img[..., 2] > img[..., 0] + 40) & (img[..., 2] > img[..., 1] + 40)).mean())
+        for lab in batch["labels"]:
+            assert len(lab) <= 2 and (lab < len(m)).all()
+    assert share[1.0] > 0.5 and share[0.0] < 0.3, share  # blue photo behind the objects

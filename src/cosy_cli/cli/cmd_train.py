@@ -100,6 +100,9 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
               help="Detector only: look-alike pairs shown side by side, A:B[:WEIGHT],... [none].")
 @click.option("--p-pair", type=click.FloatRange(0, 1), default=None,
               help="Detector only: probability that an image holds a --confusable pair [0; 0.5 with --confusable].")
+@click.option("--backgrounds", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Detector only: a folder of photographs (png, jpg) without the objects; random windows of "
+                   "them are the background of half the rendered images [procedural backgrounds only].")
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32; detector 16].")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None,
@@ -117,7 +120,7 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @user_errors
 def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
-          iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite) -> None:
+          backgrounds, iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite) -> None:
     """Train the KIND (coarse or refiner PoseNet, the 2D detector, its box classifier or the
     hypothesis scorer) on domain-randomised renders of the dataset's objects.
 
@@ -137,6 +140,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     if preset is not None and preset not in PRESETS[kind]:
         raise click.UsageError(f"--preset {preset} is not a preset of the {kind} (its presets: "
                                f"{', '.join(PRESETS[kind]) or 'none'})")
+    if backgrounds is not None and kind != "detector":
+        raise click.UsageError("--backgrounds is for the detector")
     if kind == "scorer":
         if backbone is not None or crop is not None or input_size is not None or init is not None:
             raise click.UsageError("--backbone, --crop, --input and --init are not for the scorer")
@@ -183,7 +188,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         conf = det_train.resolve_conf(preset, input_size=input_size, iterations=iterations, batch_size=batch_size,
                                       lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
                                       seed=seed, checkpoint_every=checkpoint_every, init=init,
-                                      class_weights=class_weights, confusable=confusable, p_pair=p_pair)
+                                      class_weights=class_weights, confusable=confusable, p_pair=p_pair,
+                                      backgrounds=backgrounds)
         det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
                        progress=True, models_dir=models_dir, camera=camera)
         return

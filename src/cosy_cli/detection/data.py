@@ -23,7 +23,8 @@ One image (:meth:`DetectionSampleGenerator.batch`):
 - appearance: random flat object colours (greys, browns, any hue; with ``p_mesh_colors`` > 0 an
   instance of a coloured mesh keeps the mesh's own colours with that probability), one light per group of
   images (direction, intensity, ambient random), smooth colour noise on the objects, a random
-  background (flat, gradient, blobs, coarse noise or random rectangles and discs) where nothing is drawn,
+  background (flat, gradient, blobs, coarse noise or random rectangles and discs; with ``photos``, a
+  random window of one of those photographs with probability ``p_photo``) where nothing is drawn,
   contrast / brightness / per-channel gain (``gain_jitter``), optionally saturation, sensor noise,
   blur (``blur``: probability, sigma range).
 
@@ -115,6 +116,56 @@ class _RestPoses:
 
 
 DISTRACTOR_ID0 = 900_000  # renderer ids of clutter meshes (their own ids + this), apart from the objects'
+CLUTTER_ID0 = 910_000  # renderer ids of the random clutter shapes (clutter_meshes), apart from both
+
+
+def clutter_meshes(n: int = 32, seed: int = 0) -> dict:
+    """{k: trimesh.Trimesh (mm)} for k = 1..n: unlabelled clutter of many shapes and sizes, as real
+    scenes hold (boxes, cylinders, cones, spheres, capsules, rings and lumpy convex hulls; each side
+    25-400 mm, log-uniform), the same for a given seed."""
+    import trimesh
+
+    rng = np.random.default_rng([seed, 31337])
+    out = {}
+    for k in range(1, n + 1):
+        size = np.exp(rng.uniform(np.log(25.0), np.log(400.0), 3))
+        kind = k % 7
+        if kind == 0:
+            m = trimesh.creation.box(extents=size)
+        elif kind == 1:
+            m = trimesh.creation.cylinder(radius=size[0] / 2, height=size[2], sections=24)
+        elif kind == 2:
+            m = trimesh.creation.cone(radius=size[0] / 2, height=size[2], sections=24)
+        elif kind == 3:
+            m = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+            m.apply_scale(size)
+        elif kind == 4:
+            m = trimesh.creation.capsule(height=size[2], radius=size[0] / 4, count=[12, 12])
+        elif kind == 5:
+            m = trimesh.creation.annulus(r_min=size[0] / 4, r_max=size[0] / 2, height=size[2] / 3, sections=24)
+        else:
+            m = trimesh.PointCloud(rng.normal(0, 1, (24, 3)) * size / 4).convex_hull
+        m.apply_translation(-m.bounds.mean(0))
+        out[k] = m
+    return out
+
+
+def photo_window(photo: np.ndarray, h: int, w: int, rng: np.random.Generator) -> np.ndarray:
+    """(h, w, 3) float32: a random window of ``photo`` ((H, W, 3) uint8) with the output's aspect,
+    25-100 % of the largest such window (log-uniform), mirrored half the time, resized to (w, h)."""
+    import cv2
+
+    H, W = photo.shape[:2]
+    full = min(W, H * w / h)  # width of the largest window of aspect w / h
+    ww = full * float(np.exp(rng.uniform(np.log(0.25), 0.0)))
+    wh = ww * h / w
+    x0, y0 = rng.uniform(0, W - ww), rng.uniform(0, H - wh)
+    x0i, y0i = int(x0), int(y0)
+    x1i, y1i = max(x0i + 1, min(W, int(round(x0 + ww)))), max(y0i + 1, min(H, int(round(y0 + wh))))
+    win = photo[y0i:y1i, x0i:x1i]
+    if rng.random() < 0.5:
+        win = win[:, ::-1]
+    return cv2.resize(np.ascontiguousarray(win), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
 class DetectionSampleGenerator(RendererOwner):
@@ -128,7 +179,8 @@ class DetectionSampleGenerator(RendererOwner):
                  min_pixels: int = 12, light_groups: int = 4, smooth: bool = True, class_weights=None,
                  confusable=None, p_pair: float = 0.0, probe_points=None, p_mesh_colors: float = 0.0,
                  distractors: dict | None = None, max_distractors: int = 0, gain_jitter: float = 0.1,
-                 saturation=(1.0, 1.0), blur=(0.25, 0.3, 1.0), min_objects: int = 1):
+                 saturation=(1.0, 1.0), blur=(0.25, 0.3, 1.0), min_objects: int = 1, backdrop=(0.0, 0, 0),
+                 photos=None, p_photo: float = 0.0):
         self.meshes = {int(k): v for k, v in meshes.items()}
         self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
         self.K = np.asarray(K, dtype=np.float64)
@@ -153,6 +205,12 @@ class DetectionSampleGenerator(RendererOwner):
         self.gain_jitter = float(gain_jitter)  # per-channel gain U(1 -+ this) (white balance)
         self.saturation = (float(saturation[0]), float(saturation[1]))  # (1, 1): no saturation change
         self.blur = tuple(float(v) for v in blur)  # (probability, sigma range) of a Gaussian blur
+        # (probability, fewest, most): a backdrop of clutter behind the objects instead of a flat background
+        self.backdrop = (float(backdrop[0]), int(backdrop[1]), int(backdrop[2])) if len(self.distractor_ids) \
+            else (0.0, 0, 0)
+        # background photographs ([(h, w, 3) uint8 RGB]): a random window of one, with probability p_photo
+        self.photos = list(photos or [])
+        self.p_photo = float(p_photo) if self.photos else 0.0
         every = {**self.meshes, **self.distractors}
         self.rest = {int(o): _RestPoses(every[int(o)]) for o in list(self.obj_ids) + list(self.distractor_ids)}
         self.radius = {int(o): float(np.linalg.norm(r.hull, axis=1).max()) for o, r in self.rest.items()}
@@ -258,6 +316,22 @@ class DetectionSampleGenerator(RendererOwner):
         x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
         return make_pose(random_rotations(n, rng), np.stack([x, y, np.ones(n)], 1) * z[:, None])
 
+    def _add_backdrop(self, ids: np.ndarray, T: np.ndarray, K: np.ndarray):
+        """Clutter behind the scene: distractors at random orientations, 0.1-3 m behind the farthest
+        labelled object, spread over the image (they hide whatever background would be pasted)."""
+        rng = self.rng
+        w, h = self.input_size
+        labelled = np.isin(ids, self.obj_ids)
+        far = float(T[labelled, 2, 3].max()) if labelled.any() else 600.0
+        n = int(rng.integers(self.backdrop[1], self.backdrop[2] + 1))
+        z = far + rng.uniform(100.0, 3000.0, n)
+        u, v = rng.uniform(-0.1 * w, 1.1 * w, n), rng.uniform(-0.1 * h, 1.1 * h, n)
+        y = (v - K[1, 2]) / K[1, 1]
+        x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        Tb = make_pose(random_rotations(n, rng), np.stack([x, y, np.ones(n)], 1) * z[:, None])
+        return (np.concatenate([ids, rng.choice(self.distractor_ids, n)]).astype(np.int64),
+                np.concatenate([T, Tb]))
+
     def _colors(self, n: int) -> np.ndarray:
         return random_colors(self.rng, n, p=(0.5, 0.2, 0.3), brown_hue=(0.04, 0.13), brown_sat=(0.2, 0.65),
                              sat=(0.2, 0.9), val=(0.3, 0.95))
@@ -289,6 +363,8 @@ class DetectionSampleGenerator(RendererOwner):
                     T = np.concatenate([T, T_cam_world[None]])
             else:
                 T = self._floating_scene(ids, K, pair)
+            if self.backdrop[0] > 0 and rng.random() < self.backdrop[0]:  # drawn only then
+                ids, T = self._add_backdrop(ids, T, K)
             ids_all.append(ids)
             T_all.append(T)
             tile_all.append(np.full(len(ids), b))
@@ -386,9 +462,12 @@ class DetectionSampleGenerator(RendererOwner):
             field = rng.uniform(0.85, 1.15, (int(rng.integers(2, 6)), int(rng.integers(2, 8)), 3)).astype(np.float32)
             multiply_field(img, field, cv2.INTER_CUBIC)
             if not foreground[b].all():
-                kind = int(rng.integers(0, 5))
-                c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
-                if kind == 0:
+                photo = self.p_photo > 0 and rng.random() < self.p_photo  # drawn only then
+                kind = -1 if photo else int(rng.integers(0, 5))
+                c0, c1 = (None, None) if photo else (rng.uniform(0, 255, 3), rng.uniform(0, 255, 3))
+                if photo:
+                    bg = photo_window(self.photos[int(rng.integers(len(self.photos)))], h, w, rng)
+                elif kind == 0:
                     bg = flat_background(h, w, c0)
                 elif kind == 1:
                     bg = gradient_background(h, w, c0, c1, rng.uniform(0, 2 * np.pi))
@@ -540,4 +619,4 @@ class DetectionStream(_iterable_base()):
 
 
 __all__ = ["DetectionSampleGenerator", "DetectionStream", "batch_targets", "scaled_intrinsics", "normalised_weights",
-           "pair_table", "visible_probe_pixels"]
+           "pair_table", "photo_window", "visible_probe_pixels"]

@@ -75,6 +75,10 @@ DEFAULT_CONF = {
     "saturation": [1.0, 1.0],     # saturation factor range
     "blur": [0.25, 0.3, 1.0],     # probability, sigma range (px) of a Gaussian blur
     "min_objects": 1,             # labelled objects per image, at least
+    "clutter_shapes": 0,          # more clutter: this many random shapes (data.clutter_meshes) join the distractors
+    "backdrop": [0.0, 0, 0],      # probability, fewest, most distractors behind the objects (a cluttered backdrop)
+    "backgrounds": None,          # a folder of photographs: random windows of them as backgrounds
+    "p_photo": 0.5,               # with backgrounds: the share of images on a photograph
 }
 
 CONFS = {
@@ -103,6 +107,14 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
         c[k] = float(c[k])
     c["max_distractors"], c["min_objects"] = int(c["max_distractors"]), int(c["min_objects"])
     c["saturation"], c["blur"] = [float(v) for v in c["saturation"]], [float(v) for v in c["blur"]]
+    c["clutter_shapes"] = int(c["clutter_shapes"])
+    c["backgrounds"] = str(c["backgrounds"]) if c["backgrounds"] else None
+    c["p_photo"] = float(c["p_photo"])
+    if not 0 <= c["p_photo"] <= 1:
+        raise CosyError(f"p_photo must be in [0, 1], got {c['p_photo']}")
+    c["backdrop"] = [float(c["backdrop"][0]), int(c["backdrop"][1]), int(c["backdrop"][2])]
+    if c["clutter_shapes"] < 0 or not (0 <= c["backdrop"][0] <= 1 and 0 <= c["backdrop"][1] <= c["backdrop"][2]):
+        raise CosyError("clutter_shapes must be >= 0 and backdrop [probability in [0, 1], fewest, most >= fewest]")
     if not (0 <= c["p_mesh_colors"] <= 1 and 0 <= c["gain_jitter"] < 1 and c["max_distractors"] >= 0
             and c["min_objects"] >= 1 and len(c["saturation"]) == 2 and 0 < c["saturation"][0] <= c["saturation"][1]
             and len(c["blur"]) == 3 and 0 <= c["blur"][0] <= 1 and 0 < c["blur"][1] <= c["blur"][2]):
@@ -337,12 +349,22 @@ def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: s
     appearance = {k: conf[k] for k in ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects")}
     if appearance != {k: DEFAULT_CONF[k] for k in appearance}:  # else the generator's defaults, as before
         gen_kw.update(appearance)
-    if conf["max_distractors"] > 0:
+    if conf["max_distractors"] > 0 or conf["backdrop"][0] > 0:
         from ..synth.objects import object_meshes
-        from .data import DISTRACTOR_ID0
+        from .data import CLUTTER_ID0, DISTRACTOR_ID0, clutter_meshes
 
-        gen_kw.update(distractors={DISTRACTOR_ID0 + k: m for k, m in object_meshes().items()},
-                      max_distractors=conf["max_distractors"])
+        distractors = {DISTRACTOR_ID0 + k: m for k, m in object_meshes().items()}
+        distractors.update({CLUTTER_ID0 + k: m for k, m in clutter_meshes(conf["clutter_shapes"]).items()})
+        gen_kw.update(distractors=distractors, max_distractors=conf["max_distractors"])
+        if conf["backdrop"][0] > 0:  # else the generator's default: the stream of earlier runs unchanged
+            gen_kw.update(backdrop=tuple(conf["backdrop"]))
+    if conf["backgrounds"] and conf["p_photo"] > 0:
+        from ..io.images import read_photo_folder
+
+        photos = read_photo_folder(conf["backgrounds"])
+        gen_kw.update(photos=photos, p_photo=conf["p_photo"])
+        log(f"train detector: {len(photos)} background photographs from {conf['backgrounds']} "
+            f"(on {conf['p_photo']:.0%} of the images)")
     if ckpt is None and conf["init"]:  # warm start, BatchNorm recalibrated on rendered images of the run's data
         calib = DetectionSampleGenerator(meshes, K, image_size, mcfg.input_size, seed=np.random.SeedSequence(
             [conf["seed"], 7919]), obj_ids=obj_ids, **gen_kw)
@@ -529,7 +551,12 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         "its images were not used); boxes = visible-mask boxes, instances under "
         f"{c['min_visib']:g} visible ignored; appearance: own mesh colours with probability "
         f"{c.get('p_mesh_colors', 0.0):g}, up to {c.get('max_distractors', 0)} clutter shapes, at least "
-        f"{c.get('min_objects', 1)} objects per image",
+        f"{c.get('min_objects', 1)} objects per image"
+        + (f", {c['clutter_shapes']} extra random clutter shapes" if c.get("clutter_shapes") else "")
+        + (f", a backdrop of {c['backdrop'][1]}-{c['backdrop'][2]} clutter shapes behind the objects with probability "
+           f"{c['backdrop'][0]:g}" if (c.get("backdrop") or [0])[0] else "")
+        + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} of "
+           "the images" if c.get("backgrounds") and c.get("p_photo") else ""),
         f"- training: {ck['step']} steps, {ck['samples']} images, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         *_sampling_lines(c),

@@ -44,6 +44,26 @@ def read_mask(path: str | Path) -> np.ndarray:
     return img > 0
 
 
+def read_photo_folder(folder: str | Path, max_side: int = 800) -> list[np.ndarray]:
+    """Every image of ``folder`` (png, jpg, tif; sorted by name; not its subfolders) as (H, W, 3)
+    uint8 RGB, shrunk so that its longer side is at most ``max_side`` px."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CosyError("folder of photographs not found", path=folder)
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise CosyError(f"no image ({', '.join(IMAGE_EXTENSIONS)}) in this folder", path=folder)
+    out = []
+    for f in files:
+        img = read_rgb(f)
+        s = max_side / max(img.shape[:2])
+        if s < 1:
+            img = cv2.resize(img, (max(1, round(img.shape[1] * s)), max(1, round(img.shape[0] * s))),
+                             interpolation=cv2.INTER_AREA)
+        out.append(img)
+    return out
+
+
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) read from the file header when possible (png by hand, jpg/tif by PIL), else by decoding."""
     path = Path(path)
