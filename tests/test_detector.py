@@ -385,13 +385,17 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
     from cosy_cli.detection.train import DEFAULT_CONF, resolve_conf
 
     real, default = resolve_conf("real"), resolve_conf()
-    assert real["p_mesh_colors"] == 0.6 and real["max_distractors"] == 4 and real["min_objects"] == 3
+    assert real["p_mesh_colors"] == 0.6 and real["max_distractors"] == 10 and real["min_objects"] == 3
+    assert real["clutter_shapes"] == 32 and real["backdrop"] == [0.7, 8, 30]
     assert real["init"].endswith("detector.onnx") and Path(real["init"]).is_file()
     import inspect
 
     gen = inspect.signature(det_data.DetectionSampleGenerator.__init__).parameters
-    for k in ("p_mesh_colors", "max_distractors", "gain_jitter", "min_objects"):
-        assert default[k] == gen[k].default, k  # the default preset draws the scenes it always drew
+    for k in ("p_mesh_colors", "max_distractors", "gain_jitter", "min_objects", "backdrop", "photos"):
+        if k == "photos":  # the default preset draws the scenes it always drew
+            assert default["backgrounds"] is None and gen[k].default is None and gen["p_photo"].default == 0
+            continue
+        assert default[k] == (list(gen[k].default) if k == "backdrop" else gen[k].default), k
     assert tuple(default["saturation"]) == gen["saturation"].default and tuple(default["blur"]) == gen["blur"].default
     with pytest.raises(CosyError, match="appearance"):
         resolve_conf(None, p_mesh_colors=1.5)
@@ -407,7 +411,7 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
     assert r.exit_code == 0, r.output
     rec = json.loads((out / "config.json").read_text())
     assert rec["models"] == str((DATA / "models").resolve()) and "dataset" not in rec
-    assert rec["image_size"] == [640, 480] and rec["p_mesh_colors"] == 0.6 and rec["max_distractors"] == 4
+    assert rec["image_size"] == [640, 480] and rec["p_mesh_colors"] == 0.6 and rec["max_distractors"] == 10
     assert "warm start from" in r.output and "2 background photographs" in r.output
     r = CliRunner().invoke(cli, ["export", "--run", str(out), "--out", str(tmp_path / "det.onnx")])
     assert r.exit_code == 0, r.output

@@ -73,8 +73,9 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--preset", type=click.Choice(["default", "long", "real"]), default=None,
               help="Scorer: default (150 shards, 8000 steps: 37 min on 2 cores for the 8 LM-O objects) or long "
                    "(300 shards, 30000 steps: about 2 h) [default]. Detector: default, or real (for real "
-                   "photographs: objects often in their own colours, clutter, white balance, saturation, blur, "
-                   "at least 3 objects per image, warm start from the shipped detector, 5000 steps).")
+                   "photographs: objects often in their own colours, clutter among and behind them, white balance, "
+                   "saturation, blur, at least 3 objects per image, warm start from the shipped detector, 2500 "
+                   "steps: 33 min on 2 cores for the 8 LM-O objects; add --backgrounds).")
 @click.option("--shards", type=click.IntRange(min=1), default=None,
               help="Scorer: training shards of 24 rendered images each [150; long: 300].")
 @click.option("--split", default="train_pbr", show_default=True,
@@ -101,8 +102,9 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--p-pair", type=click.FloatRange(0, 1), default=None,
               help="Detector only: probability that an image holds a --confusable pair [0; 0.5 with --confusable].")
 @click.option("--backgrounds", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Detector only: a folder of photographs (png, jpg) without the objects; random windows of "
-                   "them are the background of half the rendered images [procedural backgrounds only].")
+              help="Detector only: a folder of photographs (png, jpg) without the objects (any scenes: your "
+                   "workspace, a photo collection); random windows of them are the background of half the "
+                   "rendered images, the largest gain on real photographs [procedural backgrounds only].")
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32; detector 16].")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None,
