@@ -502,3 +502,20 @@ def test_photographs_as_backgrounds(meshes, tmp_path):
         for lab in batch["labels"]:
             assert len(lab) <= 2 and (lab < len(m)).all()
     assert share[1.0] > 0.5 and share[0.0] < 0.3, share  # blue photo behind the objects
+
+    # photographs on the table and clutter surfaces: the same scenes and boxes, the surfaces now green
+    green = np.zeros((200, 300, 3), np.uint8)
+    green[..., 1] = 255
+    got = {}
+    for p in (0.0, 1.0):
+        gen = DetectionSampleGenerator(m, K, size, (160, 120), seed=6, p_table=1.0, max_objects=2, photos=[green],
+                                       p_photo=0.0, p_photo_texture=p)
+        batch = gen.batch(4)
+        gen.close()
+        img = batch["images"].astype(np.float32)
+        got[p] = (float(((img[..., 1] > img[..., 0] + 30) & (img[..., 1] > img[..., 2] + 30)).mean()), batch["boxes"])
+    assert got[1.0][0] > got[0.0][0] + 0.2, (got[0.0][0], got[1.0][0])
+    assert all(np.array_equal(a, b) for a, b in zip(got[0.0][1], got[1.0][1]))
+    with pytest.raises(CosyError, match="p_photo_texture"):
+        from cosy_cli.detection.train import resolve_conf as _rc
+        _rc("real", p_photo_texture=1.5)

@@ -180,7 +180,7 @@ class DetectionSampleGenerator(RendererOwner):
                  confusable=None, p_pair: float = 0.0, probe_points=None, p_mesh_colors: float = 0.0,
                  distractors: dict | None = None, max_distractors: int = 0, gain_jitter: float = 0.1,
                  saturation=(1.0, 1.0), blur=(0.25, 0.3, 1.0), min_objects: int = 1, backdrop=(0.0, 0, 0),
-                 photos=None, p_photo: float = 0.0):
+                 photos=None, p_photo: float = 0.0, p_photo_texture: float = 0.0):
         self.meshes = {int(k): v for k, v in meshes.items()}
         self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
         self.K = np.asarray(K, dtype=np.float64)
@@ -211,6 +211,8 @@ class DetectionSampleGenerator(RendererOwner):
         # background photographs ([(h, w, 3) uint8 RGB]): a random window of one, with probability p_photo
         self.photos = list(photos or [])
         self.p_photo = float(p_photo) if self.photos else 0.0
+        # with photos: each unlabelled surface (table, clutter) wears a window of one, shaded, with this probability
+        self.p_photo_texture = float(p_photo_texture) if self.photos else 0.0
         every = {**self.meshes, **self.distractors}
         self.rest = {int(o): _RestPoses(every[int(o)]) for o in list(self.obj_ids) + list(self.distractor_ids)}
         self.radius = {int(o): float(np.linalg.norm(r.hull, axis=1).max()) for o, r in self.rest.items()}
@@ -441,6 +443,8 @@ class DetectionSampleGenerator(RendererOwner):
             out["T_cam_obj"].append(T[np.array(kept, np.int64)].reshape(len(kept), 4, 4))
             if probes:
                 out["probe_px"].append(probe_px[np.array(kept, np.int64)].reshape(len(kept), n_sets))
+        if self.p_photo_texture > 0:  # drawn only then: the stream of earlier runs stays as it was
+            self._photo_textures(rgb, inst, is_table)
         out["images"] = self._compose(rgb, inst >= 0)
         return out
 
@@ -449,6 +453,36 @@ class DetectionSampleGenerator(RendererOwner):
         """(h, w, 3) float32 unit Gaussian noise: a random window of the fixed :func:`noise_bank`."""
         y, x = int(self.rng.integers(h)), int(self.rng.integers(w))
         return noise_bank(h, w)[y:y + h, x:x + w]
+
+    def _photo_textures(self, rgb: np.ndarray, inst: np.ndarray, unlabelled: np.ndarray) -> None:
+        """In place: each unlabelled instance (table, clutter; ``unlabelled`` (n,) over the instance
+        ids of ``inst`` (B, h, w), -1 = nothing) takes, with probability ``p_photo_texture``, the
+        pixels of one of two random photograph windows of its image, times its own shading (its
+        rendered luminance over the instance's mean): real textures on surfaces that are no object."""
+        rng = self.rng
+        B, h, w, _ = rgb.shape
+        n = len(unlabelled)
+        # per instance: 0 keeps its colour, 1 or 2 wears texture 1 or 2 of its image
+        choice = np.where(unlabelled & (rng.random(n) < self.p_photo_texture), rng.integers(1, 3, n), 0)
+        if not choice.any():
+            return
+        lum = rgb.astype(np.float32).mean(3)  # (B, h, w)
+        flat = inst.reshape(-1)
+        on = flat >= 0
+        sums = np.bincount(flat[on], weights=lum.reshape(-1)[on], minlength=n)
+        counts = np.bincount(flat[on], minlength=n)
+        mean = sums / np.maximum(counts, 1)
+        for b in range(B):
+            ib = inst[b]
+            which = np.where(ib >= 0, choice[np.maximum(ib, 0)], 0)
+            if not which.any():
+                continue
+            shade = np.clip(lum[b] / np.maximum(mean[np.maximum(ib, 0)], 1.0), 0.0, 2.5)[..., None]
+            for t in (1, 2):
+                m = which == t
+                if m.any():
+                    tex = photo_window(self.photos[int(rng.integers(len(self.photos)))], h, w, rng)
+                    rgb[b][m] = np.clip(tex[m] * shade[m], 0, 255).astype(rgb.dtype)
 
     def _compose(self, rgb: np.ndarray, foreground: np.ndarray) -> np.ndarray:
         """Backgrounds where nothing was drawn, colour noise on the surfaces, image augmentations."""

@@ -79,6 +79,7 @@ DEFAULT_CONF = {
     "backdrop": [0.0, 0, 0],      # probability, fewest, most distractors behind the objects (a cluttered backdrop)
     "backgrounds": None,          # a folder of photographs: random windows of them as backgrounds
     "p_photo": 0.5,               # with backgrounds: the share of images on a photograph
+    "p_photo_texture": 0.0,       # with backgrounds: the share of table and clutter surfaces wearing a photograph
 }
 
 CONFS = {
@@ -111,8 +112,10 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     c["clutter_shapes"] = int(c["clutter_shapes"])
     c["backgrounds"] = str(c["backgrounds"]) if c["backgrounds"] else None
     c["p_photo"] = float(c["p_photo"])
-    if not 0 <= c["p_photo"] <= 1:
-        raise CosyError(f"p_photo must be in [0, 1], got {c['p_photo']}")
+    c["p_photo_texture"] = float(c.get("p_photo_texture", 0.0))
+    for k in ("p_photo", "p_photo_texture"):
+        if not 0 <= c[k] <= 1:
+            raise CosyError(f"{k} must be in [0, 1], got {c[k]}")
     c["backdrop"] = [float(c["backdrop"][0]), int(c["backdrop"][1]), int(c["backdrop"][2])]
     if c["clutter_shapes"] < 0 or not (0 <= c["backdrop"][0] <= 1 and 0 <= c["backdrop"][1] <= c["backdrop"][2]):
         raise CosyError("clutter_shapes must be >= 0 and backdrop [probability in [0, 1], fewest, most >= fewest]")
@@ -359,13 +362,17 @@ def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: s
         gen_kw.update(distractors=distractors, max_distractors=conf["max_distractors"])
         if conf["backdrop"][0] > 0:  # else the generator's default: the stream of earlier runs unchanged
             gen_kw.update(backdrop=tuple(conf["backdrop"]))
-    if conf["backgrounds"] and conf["p_photo"] > 0:
+    if conf["backgrounds"] and (conf["p_photo"] > 0 or conf["p_photo_texture"] > 0):
         from ..io.images import read_photo_folder
 
         photos = read_photo_folder(conf["backgrounds"])
         gen_kw.update(photos=photos, p_photo=conf["p_photo"])
+        if conf["p_photo_texture"] > 0:  # else the generator's default: the stream of earlier runs unchanged
+            gen_kw.update(p_photo_texture=conf["p_photo_texture"])
         log(f"train detector: {len(photos)} background photographs from {conf['backgrounds']} "
-            f"(on {conf['p_photo']:.0%} of the images)")
+            f"(on {conf['p_photo']:.0%} of the images"
+            + (f"; on {conf['p_photo_texture']:.0%} of the table and clutter surfaces" if conf["p_photo_texture"] else "")
+            + ")")
     if ckpt is None and conf["init"]:  # warm start, BatchNorm recalibrated on rendered images of the run's data
         calib = DetectionSampleGenerator(meshes, K, image_size, mcfg.input_size, seed=np.random.SeedSequence(
             [conf["seed"], 7919]), obj_ids=obj_ids, **gen_kw)
@@ -557,7 +564,9 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         + (f", a backdrop of {c['backdrop'][1]}-{c['backdrop'][2]} clutter shapes behind the objects with probability "
            f"{c['backdrop'][0]:g}" if (c.get("backdrop") or [0])[0] else "")
         + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} of "
-           "the images" if c.get("backgrounds") and c.get("p_photo") else ""),
+           "the images" if c.get("backgrounds") and c.get("p_photo") else "")
+        + (f", windows of them on {c['p_photo_texture']:.0%} of the table and clutter surfaces"
+           if c.get("backgrounds") and c.get("p_photo_texture") else ""),
         f"- training: {ck['step']} steps, {ck['samples']} images, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         *_sampling_lines(c),
