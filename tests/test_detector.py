@@ -423,12 +423,76 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
                       "not a preset of the detector"),
                       (["train", "refiner", "--models", str(DATA / "models"), "--dataset", str(DATA), "--out",
                         str(tmp_path / "r")], "--models and --camera are for"),
-                      (["train", "classifier", "--dataset", str(DATA), "--backgrounds", str(photos), "--out",
-                        str(tmp_path / "c")], "--backgrounds is for the detector"),
+                      (["train", "coarse", "--dataset", str(DATA), "--backgrounds", str(photos), "--out",
+                        str(tmp_path / "c")], "--backgrounds is for the detector and the box classifier"),
                       ([a if a != str(out) else str(tmp_path / "r2") for a in args[:-2]] + ["--backgrounds",
                        str(DATA / "models")], "no image")):
         r = CliRunner().invoke(cli, bad)
         assert r.exit_code == 2 and said in r.output, r.output
+
+
+def test_classifier_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
+    """`cosy train classifier --models DIR --preset real --backgrounds PHOTOS`: the detector's real
+    appearance, uniform classes (the sample objects' tuning dropped for other objects), the shipped
+    detector's backbone; the model card says so; the default preset is unchanged."""
+    from cosy_cli.detection import classifier_train as ct
+    from cosy_cli.detection.train import APPEARANCE_KEYS, CONFS
+
+    real, default = ct.resolve_conf("real"), ct.resolve_conf()
+    assert all(real[k] == ct.resolve_conf(None, **{k: CONFS["real"][k]})[k] for k in APPEARANCE_KEYS)
+    assert real["class_weights"] is None and real["confusable"] is None and real["init"].endswith("detector.onnx")
+    assert default["backgrounds"] is None and default["max_distractors"] == 0 and default["confusable"]
+    with pytest.raises(CosyError, match="p_photo_texture"):
+        ct.resolve_conf("real", p_photo_texture=2)
+
+    photos, out = tmp_path / "photos", tmp_path / "clf"
+    photos.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(photos / f"p{i}.jpg"), np.full((90, 120, 3), 60 * i + 30, np.uint8))
+    models = tmp_path / "models"  # objects 1, 2, 5 of the samples: the samples' pairs and weights name others
+    models.mkdir()
+    info = json.loads((DATA / "models" / "models_info.json").read_text())
+    for o in ("1", "2", "5"):
+        (models / f"obj_{int(o):06d}.ply").write_bytes((DATA / "models" / f"obj_{int(o):06d}.ply").read_bytes())
+    (models / "models_info.json").write_text(json.dumps({o: info[o] for o in ("1", "2", "5")}))
+    args = ["train", "classifier", "--models", str(models), "--camera", str(DATA / "camera.json"), "--out", str(out),
+            "--preset", "real", "--batch-size", "8", "--warmup", "1", "--iterations", "2", "--backgrounds", str(photos)]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    assert "2 background photographs" in r.output and "BatchNorms recalibrated" in r.output
+    rec = json.loads((out / "config.json").read_text())
+    assert rec["models"] == str(models.resolve()) and "dataset" not in rec and rec["obj_ids"] == [1, 2, 5]
+    assert rec["p_mesh_colors"] == 0.6 and rec["backgrounds"] == str(photos) and rec["class_weights"] is None
+    r = CliRunner().invoke(cli, ["export", "--run", str(out), "--out", str(tmp_path / "clf.onnx")])
+    assert r.exit_code == 0, r.output
+    card = (tmp_path / "clf.md").read_text()
+    assert "models of `models`" in card and "photographs of the folder `photos`" in card
+    # the default preset on objects the samples' tuning does not name: it is dropped, the run trains
+    r = CliRunner().invoke(cli, [a for a in args if a not in ("--preset", "real", "--backgrounds", str(photos))]
+                           + ["--out", str(tmp_path / "clf2"), "--iterations", "1"])
+    assert r.exit_code == 0, r.output
+    rec = json.loads((tmp_path / "clf2" / "config.json").read_text())
+    assert rec["confusable"] is None and rec["class_weights"] is None and rec["p_pair"] == 0
+    # weights naming an object the models lack: a clear error
+    r = CliRunner().invoke(cli, [a for a in args if a not in ("--backgrounds", str(photos))]
+                           + ["--out", str(tmp_path / "clf3"), "--class-weights", "7=2"])
+    assert r.exit_code == 2 and "class_weights names objects [7]" in r.output, r.output
+
+
+def test_resuming_a_run_recorded_before_a_setting_existed(tmp_path):
+    """A run recorded before a setting was added resumes when the setting keeps the value that does
+    what runs did before; another value is refused."""
+    import torch
+
+    from cosy_cli.training import loop
+
+    torch.save({"config": {"lr": 1.0}, "step": 3}, tmp_path / loop.CHECKPOINT)
+    assert loop.start_run(tmp_path, {"lr": 1.0, "new": 0.0}, resume=True, overwrite=False,
+                          added={"new": 0.0})["step"] == 3
+    with pytest.raises(CosyError, match="new: None in the run, 0.5 now"):
+        loop.start_run(tmp_path, {"lr": 1.0, "new": 0.5}, resume=True, overwrite=False, added={"new": 0.0})
+    with pytest.raises(CosyError, match="new"):
+        loop.start_run(tmp_path, {"lr": 1.0, "new": 0.0}, resume=True, overwrite=False)
 
 
 def test_clutter_shapes_and_a_cluttered_backdrop(meshes):

@@ -55,7 +55,7 @@ def _pairs(ctx, param, value):
         raise click.BadParameter(f"expected A:B[:WEIGHT],... such as 6:7:3,4:5, got {value!r}") from None
 
 
-PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "classifier": (), "coarse": (),
+PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "classifier": ("default", "real"), "coarse": (),
            "refiner": ()}
 
 
@@ -63,19 +63,21 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.argument("kind", type=click.Choice(["coarse", "refiner", "detector", "classifier", "scorer"]))
 @click.option("--dataset", type=click.Path(path_type=Path), default=None,
               help="BOP dataset folder: the objects of its models/ (and its camera.json) are rendered "
-                   "(required but for the scorer and the detector, which can take --models).")
+                   "(required but for the scorer, the detector and the box classifier, which can take --models).")
 @click.option("--models", "models_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Scorer, detector: the models folder (obj_XXXXXX.ply in mm + models_info.json) alone, "
+              help="Scorer, detector, classifier: the models folder (obj_XXXXXX.ply in mm + models_info.json) alone, "
                    "instead of a dataset [DATASET/models].")
 @click.option("--camera", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Scorer, detector: BOP camera.json of the images it will see (intrinsics, image size) "
+              help="Scorer, detector, classifier: BOP camera.json of the images it will see (intrinsics, image size) "
                    "[the camera.json beside the models folder, else 640x480].")
 @click.option("--preset", type=click.Choice(["default", "long", "real"]), default=None,
               help="Scorer: default (150 shards, 8000 steps: 37 min on 2 cores for the 8 LM-O objects) or long "
                    "(300 shards, 30000 steps: about 2 h) [default]. Detector: default, or real (for real "
                    "photographs: objects often in their own colours, clutter among and behind them, white balance, "
                    "saturation, blur, at least 3 objects per image, warm start from the shipped detector, 2500 "
-                   "steps: 33 min on 2 cores for the 8 LM-O objects; add --backgrounds).")
+                   "steps: 33 min on 2 cores for the 8 LM-O objects; add --backgrounds). Classifier: default (tuned "
+                   "for the sample objects) or real (the detector's real appearance, uniform classes, the shipped "
+                   "detector's backbone, 3000 steps; add --backgrounds).")
 @click.option("--shards", type=click.IntRange(min=1), default=None,
               help="Scorer: training shards of 24 rendered images each [150; long: 300].")
 @click.option("--split", default="train_pbr", show_default=True,
@@ -102,7 +104,7 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--p-pair", type=click.FloatRange(0, 1), default=None,
               help="Detector only: probability that an image holds a --confusable pair [0; 0.5 with --confusable].")
 @click.option("--backgrounds", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Detector only: a folder of photographs (png, jpg) without the objects (any scenes: your "
+              help="Detector, classifier: a folder of photographs (png, jpg) without the objects (any scenes: your "
                    "workspace, a photo collection); random windows of them are the background of half the "
                    "rendered images, the largest gain on real photographs [procedural backgrounds only].")
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
@@ -142,8 +144,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     if preset is not None and preset not in PRESETS[kind]:
         raise click.UsageError(f"--preset {preset} is not a preset of the {kind} (its presets: "
                                f"{', '.join(PRESETS[kind]) or 'none'})")
-    if backgrounds is not None and kind != "detector":
-        raise click.UsageError("--backgrounds is for the detector")
+    if backgrounds is not None and kind not in ("detector", "classifier"):
+        raise click.UsageError("--backgrounds is for the detector and the box classifier")
     if kind == "scorer":
         if backbone is not None or crop is not None or input_size is not None or init is not None:
             raise click.UsageError("--backbone, --crop, --input and --init are not for the scorer")
@@ -157,13 +159,14 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         scorer_train.main(conf, models_dir if models_dir is not None else Path(dataset) / "models", out,
                           overwrite=overwrite, camera=camera, resume=resume, log=console.echo, progress=True)
         return
-    if kind == "detector" and models_dir is not None:
+    if kind in ("detector", "classifier") and models_dir is not None:
         if dataset is not None:
-            raise click.UsageError("give the detector --dataset DIR or --models DIR, not both")
+            raise click.UsageError(f"give the {kind} --dataset DIR or --models DIR, not both")
     elif dataset is None:
-        raise click.UsageError("Missing option '--dataset'" + (" (or --models DIR)." if kind == "detector" else "."))
-    if kind != "detector" and (models_dir is not None or camera is not None):
-        raise click.UsageError("--models and --camera are for the scorer and the detector")
+        raise click.UsageError("Missing option '--dataset'"
+                               + (" (or --models DIR)." if kind in ("detector", "classifier") else "."))
+    if kind not in ("detector", "classifier") and (models_dir is not None or camera is not None):
+        raise click.UsageError("--models and --camera are for the scorer, the detector and the box classifier")
     if shards is not None:
         raise click.UsageError("--shards is for the scorer")
     if kind == "classifier":
@@ -172,11 +175,11 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         from ..detection import classifier_train
 
         conf = classifier_train.resolve_conf(
-            None, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
+            preset, backgrounds=backgrounds, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
             device=device, workers=workers, seed=seed, checkpoint_every=checkpoint_every, class_weights=class_weights,
             confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets)
         classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
-                              progress=True)
+                              progress=True, models_dir=models_dir, camera=camera)
         return
     if soft_targets is not None:
         raise click.UsageError("--soft-targets is for the box classifier")

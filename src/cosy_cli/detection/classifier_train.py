@@ -10,6 +10,13 @@ edge moved by N(0, ``jitter`` x box size), what a detector's box error looks lik
 "background"). Loss: cross-entropy with label smoothing 0.05, class-balanced by the sampling
 weights. Adam, warm-up + cosine, EMA of the weights (exported).
 
+Presets: ``default`` (tuned for the sample objects: their look-alike pairs and weights, which
+runs on other objects drop) and ``real`` (onboarding for real photographs from a models folder
+alone, ``cosy train classifier --models DIR --preset real --backgrounds PHOTOS``: the detector's
+``real`` appearance (:data:`cosy_cli.detection.train.APPEARANCE_KEYS`: own mesh colours, clutter
+among and behind the objects, photographs as backgrounds), uniform classes, a warm start from the
+shipped detector's backbone).
+
 Soft targets of look-alikes (``soft_targets: lookalike``, the default of new runs): for every
 pair of the dataset's models that look alike (:func:`lookalike_fits`: the chamfer fit of
 :mod:`cosy_cli.multiview.label_groups`, at most 2 % of the diameter, with its alignment
@@ -42,6 +49,7 @@ from ..errors import CosyError
 from ..objects.database import diameter_of
 from ..training import loop
 from .classifier import ClassifierConfig, crop_boxes
+from .train import APPEARANCE_KEYS, CONFS as DETECTOR_CONFS, appearance_kwargs, check_appearance
 
 LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "accuracy", "crops_per_s"]
 
@@ -77,11 +85,24 @@ DEFAULT_CONF = {
     "workers": 0,
     "checkpoint_every": 100,
     "log_every": 20,
+    # the rendered scenes' appearance, as the detector's (detection/train.py); the default draws what it always drew
+    **{k: DETECTOR_CONFS["default"][k] for k in APPEARANCE_KEYS},
+}
+# the default's class weights and look-alike pairs name the sample objects: runs on other objects drop them
+SAMPLE_TUNING = {"class_weights": DEFAULT_CONF["class_weights"], "confusable": DEFAULT_CONF["confusable"]}
+
+CONFS = {
+    "default": DEFAULT_CONF,
+    # onboarding for real photographs from the meshes alone (cosy train classifier --models DIR --preset real
+    # [--backgrounds PHOTOS]): the detector's real appearance, uniform classes, the shipped detector's backbone
+    "real": dict(DEFAULT_CONF, **{k: DETECTOR_CONFS["real"][k] for k in APPEARANCE_KEYS}, class_weights=None,
+                 confusable=None, p_pair=0.0, init="shipped", iterations=3000, lr=1e-3, warmup=100),
 }
 
 
-def resolve_conf(conf: dict | None = None, **overrides) -> dict:
-    c = merge_conf({"default": DEFAULT_CONF}, conf or {}, overrides, default="default", what="classifier training")
+def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
+    """Defaults (or the preset named ``conf``), then ``conf``, then the overrides that are not None; checked."""
+    c = merge_conf(CONFS, conf, overrides, default="default", what="classifier training")
     try:
         for k in ("crop", "iterations", "batch_size", "warmup", "reuse", "background_per_image", "max_objects",
                   "threads", "seed", "workers", "checkpoint_every", "log_every"):
@@ -106,6 +127,11 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
         raise CosyError("classifier training settings out of range (crop >= 16, margin >= 1, arch plain (4 widths) "
                         "or detector (5 widths), soft_targets lookalike | none, soft_px [lo, hi] with 0 <= lo < hi, "
                         "soft_tol_mm > 0, ...)")
+    check_appearance(c)
+    if c["init"] == "shipped":  # the shipped detector's backbone
+        from ..shipped import shipped
+
+        c["init"] = str(shipped("detector.onnx"))
     return c
 
 
@@ -236,7 +262,8 @@ class CropSampler:
     """Batches of (crops (B, S, S, 3) uint8, class indices (B,)) from rendered scenes; with
     :meth:`batch_targets` also the target distributions (soft for hidden look-alike details)."""
 
-    def __init__(self, meshes, K, image_size, conf: dict, obj_ids, seed, step: int = 0, probes=None):
+    def __init__(self, meshes, K, image_size, conf: dict, obj_ids, seed, step: int = 0, probes=None,
+                 appearance: dict | None = None):
         from .data import DetectionSampleGenerator
 
         self.conf = conf
@@ -249,7 +276,8 @@ class CropSampler:
             meshes, K, image_size, input_size=self.size, seed=seed, obj_ids=obj_ids, max_objects=conf["max_objects"],
             min_visib=conf["min_visib"],
             class_weights={int(k): v for k, v in (conf["class_weights"] or {}).items()} or None,
-            confusable=conf["confusable"], p_pair=conf["p_pair"], probe_points=self.probes or None)
+            confusable=conf["confusable"], p_pair=conf["p_pair"], probe_points=self.probes or None,
+            **(appearance or {}))
         self.rng = np.random.default_rng([int(conf["seed"]), 99, int(step)])  # box jitter, background boxes
         self.pool_x: list = []
         self.pool_y: list = []
@@ -296,6 +324,13 @@ class CropSampler:
         self.gen.close()
 
 
+def _named(key: str, value) -> list:
+    """The object ids that class weights ({id: w}) or confusable pairs ([[a, b(, w)], ...]) name."""
+    if not value:
+        return []
+    return list(value) if key == "class_weights" else [r[i] for r in value for i in (0, 1)]
+
+
 def step_of(ckpt) -> int:
     return 0 if ckpt is None else int(ckpt["step"])
 
@@ -304,9 +339,11 @@ def write_plot(out: Path) -> None:
     loop.write_plot(out, [("loss_total", "cross-entropy")], "loss", f"{Path(out).name}: box classifier training")
 
 
-def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, overwrite: bool = False,
-         resume: bool = False, log: Callable[[str], None] = print, progress: bool = True) -> dict:
-    """Train (or resume) a box classifier in run folder ``out``."""
+def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | Path, overwrite: bool = False,
+         resume: bool = False, log: Callable[[str], None] = print, progress: bool = True,
+         models_dir: str | Path | None = None, camera: str | Path | None = None) -> dict:
+    """Train (or resume) a box classifier in run folder ``out``, on the objects of BOP ``dataset``
+    or of a models folder alone (``models_dir``, with its images' BOP ``camera``)."""
     import torch
     import torch.nn.functional as F
 
@@ -329,11 +366,22 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
                     conf.pop(k, None)
             if "soft_targets" not in old:
                 conf["_legacy_hard"] = True
-    meshes, K, image_size = load_dataset_objects(dataset)
+    meshes, K, image_size = load_dataset_objects(dataset, models_dir, camera)
     obj_ids = sorted(meshes)
+    source = Path(models_dir if models_dir is not None else dataset)
+    for k, v in SAMPLE_TUNING.items():  # the sample objects' tuning does not apply to other objects
+        if conf[k] == v and not {int(o) for o in _named(k, v)} <= set(obj_ids):
+            conf[k] = None
+            if k == "confusable":
+                conf["p_pair"] = 0.0
+    for k in SAMPLE_TUNING:
+        unknown = sorted({int(o) for o in _named(k, conf[k])} - set(obj_ids))
+        if unknown:
+            raise CosyError(f"{k} names objects {unknown} that the models lack (they are {obj_ids})", path=source)
     legacy = conf.pop("_legacy_hard", False)
-    record = dict(conf, dataset=str(Path(dataset).resolve()), split=split, obj_ids=obj_ids,
-                  camera_K=np.asarray(K).tolist(), image_size=list(image_size))
+    record = dict(conf, **({"dataset": str(source.resolve())} if models_dir is None else
+                           {"models": str(source.resolve())}),
+                  split=split, obj_ids=obj_ids, camera_K=np.asarray(K).tolist(), image_size=list(image_size))
     if legacy:
         conf.update(soft_targets="none", soft_tol_mm=2.0, soft_px=[2.0, 20.0])
     init_ckpt = None
@@ -348,14 +396,15 @@ def main(conf: dict | None, dataset: str | Path, split: str, out: str | Path, ov
             if not isinstance(init_ckpt, dict) or "ema" not in init_ckpt or "state_dict" not in init_ckpt["ema"]:
                 raise CosyError("init: not a classifier checkpoint (no EMA weights)", path=ip)
     ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite,
-                          resumable=loop.RESUMABLE_CHANGES | {"threads", "init"})
+                          resumable=loop.RESUMABLE_CHANGES | {"threads", "init"},
+                          added={k: DEFAULT_CONF[k] for k in APPEARANCE_KEYS})
     device = loop.select_device(conf, log)
     torch.set_num_threads(conf["threads"])
     cfg = ClassifierConfig(obj_ids=obj_ids, crop=conf["crop"], margin=conf["margin"], widths=tuple(conf["widths"]),
                            arch=conf["arch"], depth=tuple(conf["depth"]))
     model = build_network(cfg)
     sampler = CropSampler(meshes, K, image_size, conf, obj_ids, np.random.SeedSequence([conf["seed"], step_of(ckpt)]),
-                          step_of(ckpt))
+                          step_of(ckpt), appearance=appearance_kwargs(conf, log, "train classifier"))
     if sampler.partners:
         log("train classifier: soft targets for hidden look-alike details: "
             + ", ".join(f"{a}: {len(p)} distinguishing points" for a, p in
@@ -448,13 +497,23 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     return loop.write_model_card(out, [
         f"# {Path(out).name}: cosy second-stage box classifier",
         "",
-        f"- classes: objects {', '.join(map(str, cfg.obj_ids))} (models of `{Path(c['dataset']).name}`) + background",
+        f"- classes: objects {', '.join(map(str, cfg.obj_ids))} (models of "
+        f"`{Path(c.get('dataset') or c.get('models') or '?').name}`) + background",
         f"- input: {cfg.crop} x {cfg.crop} px RGB crop, square of {cfg.margin:g} x the box's longer side",
         (f"- network: 8 conv + BN + ReLU (widths {list(cfg.widths)}), global average pool, linear; "
          if cfg.arch == "plain" else
          f"- network: the detector's backbone (conv + BN + ReLU, widths {list(cfg.widths)}, extra convs per stage "
          f"{list(cfg.depth)}), average and max over the cells of the last two stages, linear; ")
         + f"{n / 1e3:.0f} k parameters",
+        "- training data: crops of on-the-fly domain-randomised renders of those models (no real image)"
+        + (f"; own mesh colours with probability {c['p_mesh_colors']:g}" if c.get("p_mesh_colors") else "")
+        + (f", up to {c['max_distractors']} clutter shapes" if c.get("max_distractors") else "")
+        + (f", a backdrop of clutter behind the objects with probability {c['backdrop'][0]:g}"
+           if (c.get("backdrop") or [0])[0] else "")
+        + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} of "
+           "the images" if c.get("backgrounds") and c.get("p_photo") else "")
+        + (f", windows of them on {c['p_photo_texture']:.0%} of the table and clutter surfaces"
+           if c.get("backgrounds") and c.get("p_photo_texture") else ""),
         f"- training: {ck['step']} steps, {ck['samples']} crops, batch {c['batch_size']}, Adam lr {c['lr']:g}, "
         f"EMA {c['ema']:g}, seed {c['seed']}",
     ], ck, accuracy, log)

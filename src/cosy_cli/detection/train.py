@@ -94,19 +94,15 @@ CONFS = {
 }
 
 
-def resolve_conf(conf: dict | None = None, **overrides) -> dict:
-    """Defaults, then ``conf``, then the overrides that are not None; checked."""
-    c = merge_conf(CONFS, conf, overrides, default="default", what="detector training")
-    if c["kind"] != "detector":
-        raise CosyError(f"kind must be detector here, not {c['kind']!r}")
-    c["input_size"] = [int(v) for v in c["input_size"]]
-    c["channels"] = [int(v) for v in c["channels"]]
-    c["depth"] = [int(v) for v in c["depth"]]
-    for k in ("stride", "fpn", "head", "iterations", "batch_size", "warmup", "max_objects", "seed", "workers",
-              "checkpoint_every", "log_every"):
-        c[k] = int(c[k])
-    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair", "p_mesh_colors", "gain_jitter"):
-        c[k] = float(c[k])
+# the settings of the rendered scenes' appearance that the detector and the box classifier share
+APPEARANCE_KEYS = ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects", "max_distractors",
+                   "clutter_shapes", "backdrop", "backgrounds", "p_photo", "p_photo_texture")
+
+
+def check_appearance(c: dict) -> None:
+    """In place: the appearance settings (:data:`APPEARANCE_KEYS`) of a training configuration,
+    typed and checked."""
+    c["p_mesh_colors"], c["gain_jitter"] = float(c["p_mesh_colors"]), float(c["gain_jitter"])
     c["max_distractors"], c["min_objects"] = int(c["max_distractors"]), int(c["min_objects"])
     c["saturation"], c["blur"] = [float(v) for v in c["saturation"]], [float(v) for v in c["blur"]]
     c["clutter_shapes"] = int(c["clutter_shapes"])
@@ -122,9 +118,56 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     if not (0 <= c["p_mesh_colors"] <= 1 and 0 <= c["gain_jitter"] < 1 and c["max_distractors"] >= 0
             and c["min_objects"] >= 1 and len(c["saturation"]) == 2 and 0 < c["saturation"][0] <= c["saturation"][1]
             and len(c["blur"]) == 3 and 0 <= c["blur"][0] <= 1 and 0 < c["blur"][1] <= c["blur"][2]):
-        raise CosyError("detector appearance settings out of range: p_mesh_colors in [0, 1], gain_jitter in [0, 1), "
+        raise CosyError("appearance settings out of range: p_mesh_colors in [0, 1], gain_jitter in [0, 1), "
                         "max_distractors >= 0, min_objects >= 1, saturation [low, high] > 0, blur [probability, "
                         "sigma low, sigma high]")
+
+
+def appearance_kwargs(conf: dict, log: Callable[[str], None] = print, what: str = "train detector") -> dict:
+    """The :class:`DetectionSampleGenerator` keyword arguments of ``conf``'s appearance settings:
+    only those that differ from the defaults, so that the default configuration draws the random
+    stream of earlier runs; reads the background photographs (and says how many)."""
+    kw = {}
+    appearance = {k: conf[k] for k in ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects")}
+    if appearance != {k: DEFAULT_CONF[k] for k in appearance}:  # else the generator's defaults, as before
+        kw.update(appearance)
+    if conf["max_distractors"] > 0 or conf["backdrop"][0] > 0:
+        from ..synth.objects import object_meshes
+        from .data import CLUTTER_ID0, DISTRACTOR_ID0, clutter_meshes
+
+        distractors = {DISTRACTOR_ID0 + k: m for k, m in object_meshes().items()}
+        distractors.update({CLUTTER_ID0 + k: m for k, m in clutter_meshes(conf["clutter_shapes"]).items()})
+        kw.update(distractors=distractors, max_distractors=conf["max_distractors"])
+        if conf["backdrop"][0] > 0:  # else the generator's default: the stream of earlier runs unchanged
+            kw.update(backdrop=tuple(conf["backdrop"]))
+    if conf["backgrounds"] and (conf["p_photo"] > 0 or conf["p_photo_texture"] > 0):
+        from ..io.images import read_photo_folder
+
+        photos = read_photo_folder(conf["backgrounds"])
+        kw.update(photos=photos, p_photo=conf["p_photo"])
+        if conf["p_photo_texture"] > 0:  # else the generator's default: the stream of earlier runs unchanged
+            kw.update(p_photo_texture=conf["p_photo_texture"])
+        log(f"{what}: {len(photos)} background photographs from {conf['backgrounds']} "
+            f"(on {conf['p_photo']:.0%} of the images"
+            + (f"; on {conf['p_photo_texture']:.0%} of the table and clutter surfaces" if conf["p_photo_texture"] else "")
+            + ")")
+    return kw
+
+
+def resolve_conf(conf: dict | None = None, **overrides) -> dict:
+    """Defaults, then ``conf``, then the overrides that are not None; checked."""
+    c = merge_conf(CONFS, conf, overrides, default="default", what="detector training")
+    if c["kind"] != "detector":
+        raise CosyError(f"kind must be detector here, not {c['kind']!r}")
+    c["input_size"] = [int(v) for v in c["input_size"]]
+    c["channels"] = [int(v) for v in c["channels"]]
+    c["depth"] = [int(v) for v in c["depth"]]
+    for k in ("stride", "fpn", "head", "iterations", "batch_size", "warmup", "max_objects", "seed", "workers",
+              "checkpoint_every", "log_every"):
+        c[k] = int(c[k])
+    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair", "p_mesh_colors", "gain_jitter"):
+        c[k] = float(c[k])
+    check_appearance(c)
     try:
         cw = c["class_weights"]
         c["class_weights"] = ({str(int(k)): float(v) for k, v in dict(cw).items()} if cw else None)
@@ -333,7 +376,8 @@ def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: s
                         f"{obj_ids})", path=dataset)
     if conf["init"] and not resume and not Path(conf["init"]).is_file():
         raise CosyError("warm-start detector (init) not found", path=conf["init"])
-    ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite, resumable=RESUMABLE_CHANGES | {"init"})
+    ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite, resumable=RESUMABLE_CHANGES | {"init"},
+                          added={k: DEFAULT_CONF[k] for k in APPEARANCE_KEYS})
     device = loop.select_device(conf, log)
     mcfg = model_config(conf, obj_ids)
     model = CenterNet(mcfg)
@@ -350,29 +394,7 @@ def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: s
     gen_kw = dict(max_objects=conf["max_objects"], p_table=conf["p_table"], min_visib=conf["min_visib"],
                   class_weights={int(k): v for k, v in (conf["class_weights"] or {}).items()} or None,
                   confusable=conf["confusable"], p_pair=conf["p_pair"])
-    appearance = {k: conf[k] for k in ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects")}
-    if appearance != {k: DEFAULT_CONF[k] for k in appearance}:  # else the generator's defaults, as before
-        gen_kw.update(appearance)
-    if conf["max_distractors"] > 0 or conf["backdrop"][0] > 0:
-        from ..synth.objects import object_meshes
-        from .data import CLUTTER_ID0, DISTRACTOR_ID0, clutter_meshes
-
-        distractors = {DISTRACTOR_ID0 + k: m for k, m in object_meshes().items()}
-        distractors.update({CLUTTER_ID0 + k: m for k, m in clutter_meshes(conf["clutter_shapes"]).items()})
-        gen_kw.update(distractors=distractors, max_distractors=conf["max_distractors"])
-        if conf["backdrop"][0] > 0:  # else the generator's default: the stream of earlier runs unchanged
-            gen_kw.update(backdrop=tuple(conf["backdrop"]))
-    if conf["backgrounds"] and (conf["p_photo"] > 0 or conf["p_photo_texture"] > 0):
-        from ..io.images import read_photo_folder
-
-        photos = read_photo_folder(conf["backgrounds"])
-        gen_kw.update(photos=photos, p_photo=conf["p_photo"])
-        if conf["p_photo_texture"] > 0:  # else the generator's default: the stream of earlier runs unchanged
-            gen_kw.update(p_photo_texture=conf["p_photo_texture"])
-        log(f"train detector: {len(photos)} background photographs from {conf['backgrounds']} "
-            f"(on {conf['p_photo']:.0%} of the images"
-            + (f"; on {conf['p_photo_texture']:.0%} of the table and clutter surfaces" if conf["p_photo_texture"] else "")
-            + ")")
+    gen_kw.update(appearance_kwargs(conf, log))
     if ckpt is None and conf["init"]:  # warm start, BatchNorm recalibrated on rendered images of the run's data
         calib = DetectionSampleGenerator(meshes, K, image_size, mcfg.input_size, seed=np.random.SeedSequence(
             [conf["seed"], 7919]), obj_ids=obj_ids, **gen_kw)

@@ -81,15 +81,19 @@ def load_checkpoint(path: str | Path, what: str = "checkpoint") -> dict:
 
 
 def start_run(out: str | Path, record: dict, *, resume: bool, overwrite: bool,
-              resumable: Iterable[str] = RESUMABLE_CHANGES) -> dict | None:
+              resumable: Iterable[str] = RESUMABLE_CHANGES, added: dict | None = None) -> dict | None:
     """Begin a run in folder ``out`` (checked with :func:`check_run_folder` first) whose settings
     are ``record``. ``resume``: the checkpoint, whose recorded config must equal ``record`` but for
-    the keys ``resumable``; ``overwrite``: the run's files are removed, None; else None."""
+    the keys ``resumable`` and for settings added since the run was recorded (``added``: {key: the
+    value that does what runs did before the key existed}) that keep that value; ``overwrite``: the
+    run's files are removed, None; else None."""
     ckpt_path = Path(out) / CHECKPOINT
     if resume:
         ckpt = load_checkpoint(ckpt_path)
         old = ckpt["config"]
-        diff = sorted(k for k in set(old) | set(record) if k not in resumable and old.get(k) != record.get(k))
+        added = added or {}
+        diff = sorted(k for k in set(old) | set(record) if k not in resumable and old.get(k) != record.get(k)
+                      and not (k not in old and k in added and record.get(k) == added[k]))
         if diff:
             detail = "; ".join(f"{k}: {old.get(k)!r} in the run, {record.get(k)!r} now" for k in diff)
             raise CosyError(f"cannot resume with different settings ({detail})", path=ckpt_path)
