@@ -386,7 +386,7 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
 
     real, default = resolve_conf("real"), resolve_conf()
     assert real["p_mesh_colors"] == 0.6 and real["max_distractors"] == 10 and real["min_objects"] == 3
-    assert real["clutter_shapes"] == 32 and real["backdrop"] == [0.7, 8, 30]
+    assert real["clutter_shapes"] == 32 and real["backdrop"] == [0.7, 8, 30] and real["p_photo_texture"] == 0.5
     assert real["init"].endswith("detector.onnx") and Path(real["init"]).is_file()
     import inspect
 
@@ -418,6 +418,7 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
     card = (tmp_path / "det.md").read_text()
     assert "the models folder `data_samples/models`" in card and "own mesh colours with probability 0.6" in card
     assert "photographs of the folder `photos` as the background of 50% of the images" in card
+    assert "windows of them on 50% of the table and clutter surfaces" in card
     # what the CLI refuses: both sources, the scorer's preset, --models for the pose networks
     for bad, said in ((args + ["--dataset", str(DATA)], "not both"), ([a if a != "real" else "long" for a in args],
                       "not a preset of the detector"),

@@ -87,8 +87,10 @@ CONFS = {
     # onboarding for real photographs from the meshes alone (cosy train detector --models DIR --preset real
     # [--backgrounds PHOTOS]): the objects in their own colours more often than not, clutter among and behind
     # them, white balance, saturation, blur, busy scenes, a warm start from the shipped detector, and a budget
-    # of about 33 min on 2 CPU cores (chosen on the odd lmo_dev scenes)
+    # of about 33 min on 2 CPU cores; with --backgrounds, windows of the photographs also on half the table and
+    # clutter surfaces (chosen on the odd lmo_dev scenes)
     "real": dict(DEFAULT_CONF, p_mesh_colors=0.6, max_distractors=10, clutter_shapes=32, backdrop=[0.7, 8, 30],
+                 p_photo_texture=0.5,
                  gain_jitter=0.25, saturation=[0.6, 1.3], blur=[0.6, 0.4, 1.5], min_objects=3, iterations=2500,
                  warmup=200, lr=5e-4, workers=2, init="shipped"),
 }
