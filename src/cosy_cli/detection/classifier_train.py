@@ -49,7 +49,9 @@ from ..errors import CosyError
 from ..objects.database import diameter_of
 from ..training import loop
 from .classifier import ClassifierConfig, crop_boxes
-from .train import APPEARANCE_KEYS, CONFS as DETECTOR_CONFS, appearance_kwargs, check_appearance
+from .train import (
+    APPEARANCE_KEYS, CONFS as DETECTOR_CONFS, appearance_card, appearance_kwargs, check_appearance, named_objects,
+)
 
 LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "accuracy", "crops_per_s"]
 
@@ -324,13 +326,6 @@ class CropSampler:
         self.gen.close()
 
 
-def _named(key: str, value) -> list:
-    """The object ids that class weights ({id: w}) or confusable pairs ([[a, b(, w)], ...]) name."""
-    if not value:
-        return []
-    return list(value) if key == "class_weights" else [r[i] for r in value for i in (0, 1)]
-
-
 def step_of(ckpt) -> int:
     return 0 if ckpt is None else int(ckpt["step"])
 
@@ -370,12 +365,12 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
     obj_ids = sorted(meshes)
     source = Path(models_dir if models_dir is not None else dataset)
     for k, v in SAMPLE_TUNING.items():  # the sample objects' tuning does not apply to other objects
-        if conf[k] == v and not {int(o) for o in _named(k, v)} <= set(obj_ids):
+        if conf[k] == v and not named_objects(**{k: v}) <= set(obj_ids):
             conf[k] = None
             if k == "confusable":
                 conf["p_pair"] = 0.0
     for k in SAMPLE_TUNING:
-        unknown = sorted({int(o) for o in _named(k, conf[k])} - set(obj_ids))
+        unknown = sorted(named_objects(**{k: conf[k]}) - set(obj_ids))
         if unknown:
             raise CosyError(f"{k} names objects {unknown} that the models lack (they are {obj_ids})", path=source)
     legacy = conf.pop("_legacy_hard", False)
@@ -508,12 +503,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         "- training data: crops of on-the-fly domain-randomised renders of those models (no real image)"
         + (f"; own mesh colours with probability {c['p_mesh_colors']:g}" if c.get("p_mesh_colors") else "")
         + (f", up to {c['max_distractors']} clutter shapes" if c.get("max_distractors") else "")
-        + (f", a backdrop of clutter behind the objects with probability {c['backdrop'][0]:g}"
-           if (c.get("backdrop") or [0])[0] else "")
-        + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} of "
-           "the images" if c.get("backgrounds") and c.get("p_photo") else "")
-        + (f", windows of them on {c['p_photo_texture']:.0%} of the table and clutter surfaces"
-           if c.get("backgrounds") and c.get("p_photo_texture") else ""),
+        + appearance_card(c),
         f"- training: {ck['step']} steps, {ck['samples']} crops, batch {c['batch_size']}, Adam lr {c['lr']:g}, "
         f"EMA {c['ema']:g}, seed {c['seed']}",
     ], ck, accuracy, log)

@@ -125,6 +125,21 @@ def check_appearance(c: dict) -> None:
                         "sigma low, sigma high]")
 
 
+def named_objects(class_weights=None, confusable=None) -> set:
+    """The object ids that class weights ({id: w}) and look-alike pairs ([[a, b(, w)], ...]) name."""
+    return {int(k) for k in class_weights or {}} | {int(o) for r in confusable or [] for o in r[:2]}
+
+
+def appearance_card(c: dict) -> str:
+    """The model card's words for a run's backdrop and photographs (empty when it has neither)."""
+    return ((f", a backdrop of {c['backdrop'][1]}-{c['backdrop'][2]} clutter shapes behind the objects with "
+             f"probability {c['backdrop'][0]:g}" if (c.get("backdrop") or [0])[0] else "")
+            + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} "
+               "of the images" if c.get("backgrounds") and c.get("p_photo") else "")
+            + (f", windows of them on {c['p_photo_texture']:.0%} of the table and clutter surfaces"
+               if c.get("backgrounds") and c.get("p_photo_texture") else ""))
+
+
 def appearance_kwargs(conf: dict, log: Callable[[str], None] = print, what: str = "train detector") -> dict:
     """The :class:`DetectionSampleGenerator` keyword arguments of ``conf``'s appearance settings:
     only those that differ from the defaults, so that the default configuration draws the random
@@ -167,7 +182,7 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     for k in ("stride", "fpn", "head", "iterations", "batch_size", "warmup", "max_objects", "seed", "workers",
               "checkpoint_every", "log_every"):
         c[k] = int(c[k])
-    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair", "p_mesh_colors", "gain_jitter"):
+    for k in ("lr", "ema", "box_weight", "p_table", "min_visib", "p_pair"):
         c[k] = float(c[k])
     check_appearance(c)
     try:
@@ -371,8 +386,7 @@ def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: s
         {"models": str(Path(models_dir).resolve())}
     record = dict(conf, **source, split=split, obj_ids=obj_ids, camera_K=np.asarray(K).tolist(),
                   image_size=list(image_size))
-    named = {int(k) for k in conf["class_weights"] or {}} | {int(o) for r in conf["confusable"] or [] for o in r[:2]}
-    unknown = sorted(named - set(obj_ids))
+    unknown = sorted(named_objects(conf["class_weights"], conf["confusable"]) - set(obj_ids))
     if unknown:
         raise CosyError(f"class_weights / confusable name objects {unknown} that the dataset lacks (it has "
                         f"{obj_ids})", path=dataset)
@@ -585,12 +599,7 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"{c.get('p_mesh_colors', 0.0):g}, up to {c.get('max_distractors', 0)} clutter shapes, at least "
         f"{c.get('min_objects', 1)} objects per image"
         + (f", {c['clutter_shapes']} extra random clutter shapes" if c.get("clutter_shapes") else "")
-        + (f", a backdrop of {c['backdrop'][1]}-{c['backdrop'][2]} clutter shapes behind the objects with probability "
-           f"{c['backdrop'][0]:g}" if (c.get("backdrop") or [0])[0] else "")
-        + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} of "
-           "the images" if c.get("backgrounds") and c.get("p_photo") else "")
-        + (f", windows of them on {c['p_photo_texture']:.0%} of the table and clutter surfaces"
-           if c.get("backgrounds") and c.get("p_photo_texture") else ""),
+        + appearance_card(c),
         f"- training: {ck['step']} steps, {ck['samples']} images, batch {c['batch_size']}, Adam lr {c['lr']:g} "
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         *_sampling_lines(c),
