@@ -267,3 +267,116 @@ def test_train_resume_and_export_a_classifier(tmp_path):
     assert clf.obj_ids == IDS and clf.config.arch == "detector"
     p = clf.classify(np.zeros((480, 640, 3), np.uint8), np.array([[10, 10, 50, 60], [600, 400, 80, 120]], float))
     assert p.shape == (2, 9) and np.allclose(p.sum(1), 1, atol=1e-4)
+    # a run recorded before the box head existed resumes as it was (no box head), its old log rows kept
+    rec = json.loads((run / "config.json").read_text())
+    assert rec["box_head"] is False
+    for k in ("box_head", "box_weight"):
+        rec.pop(k)
+    (run / "config.json").write_text(json.dumps(rec))
+    lines = (run / "log.csv").read_text().splitlines()
+    (run / "log.csv").write_text("\n".join(",".join(v.split(",")[:-1]) for v in lines) + "\n")
+    r = _run(base + ["--iterations", 4, "--resume"])
+    assert r.exit_code == 0, r.output
+    rows = (run / "log.csv").read_text().splitlines()
+    assert rows[0].endswith(",loss_box") and [v.split(",")[0] for v in rows[1:]] == ["1", "2", "3", "4"]
+    assert rows[1].endswith(",") and json.loads((run / "config.json").read_text())["box_head"] is False
+
+
+# ------------------------------------------------------------------------------------------------
+# box refinement (box head)
+# ------------------------------------------------------------------------------------------------
+def test_box_deltas_are_edge_offsets_in_crop_units():
+    from cosy_cli.detection.classifier import (
+        BOX_DELTA_SCALE, apply_box_deltas, box_deltas, crop_sides, xyxy_continuous_to_xywh,
+    )
+
+    box = np.array([[10.0, 20.0, 60.0, 120.0], [300.0, 200.0, 340.0, 210.0]])
+    gt = np.array([[12.0, 15.0, 70.0, 110.0], [290.0, 190.0, 360.0, 230.0]])
+    d = box_deltas(box, gt, 1.2)
+    np.testing.assert_allclose(apply_box_deltas(box, d, 1.2), gt)
+    side = crop_sides(box, 1.2)
+    np.testing.assert_allclose(side, [120.0, 48.0])  # 1.2 x the longer side
+    np.testing.assert_allclose(d[0], (gt[0] - box[0]) / (BOX_DELTA_SCALE * 120.0))
+    # a degenerate move keeps a box of at least 2 px; BOP boxes round-trip through the continuous corners
+    assert (np.diff(apply_box_deltas(box, -d * 100, 1.2).reshape(-1, 2, 2), axis=1) >= 2 - 1e-9).all()
+    xywh = np.array([[5.0, 6.0, 30.0, 40.0]])
+    np.testing.assert_allclose(xyxy_continuous_to_xywh(xywh_to_xyxy_continuous(xywh)), xywh)
+
+
+def test_box_head_learns_to_move_jittered_boxes_onto_rendered_objects(tmp_path):
+    """The whole box refinement chain, trained and applied: crops of jittered boxes of rendered
+    objects and their targets (the training sampler's code), a box-head classifier overfit on them
+    (the loss falls, so targets, crops and head agree), exported to ONNX, then
+    ``OnnxClassifier.classify_refine`` on the same images moves the boxes onto the objects (IoU with
+    the visible boxes up), and ``cosy detect`` applies it (refine_boxes) or not (0)."""
+    import torch
+    import torch.nn.functional as F
+
+    from cosy_cli.detection import classifier_train as ct
+    from cosy_cli.detection.boxes import box_iou
+    from cosy_cli.detection.classifier import xyxy_continuous_to_xywh
+    from cosy_cli.detection.train import load_dataset_objects
+
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    meshes, K, size = load_dataset_objects(SAMPLES, None, None)
+    conf = ct.resolve_conf(None, jitter=0.12, box_head=True, soft_targets="none", background_per_image=0,
+                           reuse=1, crop=64)
+    sampler = ct.CropSampler(meshes, K, size, conf, IDS, 5, appearance=None)
+    try:
+        b = sampler.gen.batch(6)
+    finally:
+        sampler.close()
+    rng = np.random.default_rng(0)
+    imgs, gts, jits, xs, ds = [], [], [], [], []
+    for img, boxes in zip(b["images"], b["boxes"]):
+        if len(boxes) == 0:
+            continue
+        jit = ct._jitter(boxes, rng, 0.12)
+        imgs.append(img), gts.append(boxes), jits.append(jit)
+        xs.append(crop_boxes(img, jit, 64, 1.2))
+        ds.append(ct.box_deltas(jit, boxes, 1.2))
+    x = torch.from_numpy(np.concatenate(xs).transpose(0, 3, 1, 2).copy()).float() / 255
+    d = torch.from_numpy(np.concatenate(ds)).float()
+    assert len(x) >= 12
+    torch.manual_seed(0)
+    net = build_network(ClassifierConfig(obj_ids=IDS, crop=64, widths=(16, 32, 48, 64), box_head=True))
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(300):
+        loss = F.smooth_l1_loss(net.forward_all(x)[1], d, beta=0.1)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert np.mean(losses[-10:]) < 0.1 * np.mean(losses[:10])
+    net.eval()
+    with torch.no_grad():  # BatchNorm statistics of these crops (a tiny set: eval mode must fit too)
+        net.train()
+        for _ in range(20):
+            net.forward_all(x)
+        net.eval()
+    path = export_onnx(net, tmp_path / "box.onnx")
+    clf = OnnxClassifier(path)
+    assert clf.has_box_head
+    before, after = [], []
+    for img, gt, jit in zip(imgs, gts, jits):
+        gt_xywh, jit_xywh = xyxy_continuous_to_xywh(gt), xyxy_continuous_to_xywh(jit)
+        probs, moved = clf.classify_refine(img, jit_xywh, passes=1)
+        assert probs.shape == (len(gt), 9)
+        before.append(np.diag(box_iou(jit_xywh, gt_xywh)))
+        after.append(np.diag(box_iou(moved, gt_xywh)))
+        _, same = clf.classify_refine(img, jit_xywh, passes=0)
+        np.testing.assert_allclose(same, jit_xywh)
+    before, after = np.concatenate(before), np.concatenate(after)
+    assert after.mean() > before.mean() + 0.1 and after.mean() > 0.85, (before.mean(), after.mean())
+    # the detect stage moves a detector's boxes with it, unless refine_boxes is 0
+    out = {}
+    for n in (0, 1):
+        stage.main({"min_score": 0.1, "refine_boxes": n}, SAMPLES, "test", tmp_path / f"d{n}.json", scene_ids=[1],
+                   detector=TwoBoxDetector(), classifier=clf, progress=False)
+        out[n] = bop.read_detections(tmp_path / f"d{n}.json").sort_values(["im_id", "obj_id", "score"])
+        meta = json.loads((tmp_path / f"d{n}.meta.json").read_text())
+        assert meta["classifier"]["refine_boxes"] == n
+    raw = TwoBoxDetector().detect(np.zeros((480, 640, 3), np.uint8), 0.1, 30, 0.5)[0]
+    assert np.isin(np.round(out[0][["x", "y"]].to_numpy(), 6), np.round(raw[:, :2], 6)).all()
+    assert not np.isin(np.round(out[1][["x", "y"]].to_numpy(), 6), np.round(raw[:, :2], 6)).all()

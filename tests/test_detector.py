@@ -468,6 +468,12 @@ def test_classifier_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
     assert r.exit_code == 0, r.output
     card = (tmp_path / "clf.md").read_text()
     assert "models of `models`" in card and "photographs of the folder `photos`" in card
+    # the real preset also learns to move boxes onto the objects (a box head, wider box jitter)
+    assert rec["box_head"] is True and rec["jitter"] == 0.12 and "a box head" in card
+    from cosy_cli.detection.classifier import OnnxClassifier
+
+    assert OnnxClassifier(tmp_path / "clf.onnx").has_box_head
+    assert "loss_box" in (out / "log.csv").read_text().splitlines()[0]
     # the default preset on objects the samples' tuning does not name: it is dropped, the run trains
     r = CliRunner().invoke(cli, [a for a in args if a not in ("--preset", "real", "--backgrounds", str(photos))]
                            + ["--out", str(tmp_path / "clf2"), "--iterations", "1"])

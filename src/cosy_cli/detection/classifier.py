@@ -13,7 +13,13 @@ plus a "background" class (no object of the dataset in the box).
 - :class:`OnnxClassifier`: the runner of an exported classifier (``classify(rgb, boxes)``);
 - :func:`rescore`: how the detect stage combines the detector's scores with the classifier's
   probabilities (see its docstring), :data:`RULE_DEFAULTS` the settings chosen on held-out
-  seed 4242.
+  seed 4242;
+- box refinement (classifiers trained with ``box_head``): a second output regresses where the
+  object's visible box lies, as offsets of the four edges from the given box in units of the
+  crop's side (:func:`box_deltas`, :func:`apply_box_deltas`; a Faster R-CNN-style second stage).
+  A training-free pose estimate takes the object's distance from the box's size, so a box 20 %
+  too large puts the object 20 % too close: on real LM-O images, the same detections with their
+  boxes snapped to the GT boxes gave 0.142 instead of 0.043 AR (MSSD, MSPD).
 
 Training: :mod:`cosy_cli.detection.classifier_train` (``cosy train classifier``).
 """
@@ -31,6 +37,7 @@ from ..errors import CosyError
 
 METADATA_KEY = "cosy_classifier"
 FILL = 127  # grey where a crop leaves the image
+BOX_DELTA_SCALE = 0.1  # box head outputs: edge offsets in units of BOX_DELTA_SCALE x the crop's side
 
 
 # ---------------------------------------------------------------------------------- crops
@@ -44,7 +51,7 @@ def crop_boxes(rgb: np.ndarray, xyxy: np.ndarray, size: int, margin: float) -> n
     xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
     out = np.empty((len(xyxy), size, size, 3), np.uint8)
     cx, cy = (xyxy[:, 0] + xyxy[:, 2]) / 2, (xyxy[:, 1] + xyxy[:, 3]) / 2
-    side = np.maximum(np.maximum(xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]) * margin, 8.0)
+    side = crop_sides(xyxy, margin)
     for i in range(len(xyxy)):
         s = size / side[i]  # output px per image px
         src = rgb
@@ -67,6 +74,38 @@ def crop_boxes(rgb: np.ndarray, xyxy: np.ndarray, size: int, margin: float) -> n
     return out
 
 
+def crop_sides(xyxy: np.ndarray, margin: float) -> np.ndarray:
+    """(N,) side px of the square crops of boxes ``xyxy`` (N, 4): ``margin`` x the longer side, at least 8 px."""
+    xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    return np.maximum(np.maximum(xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]) * margin, 8.0)
+
+
+def box_deltas(xyxy: np.ndarray, target_xyxy: np.ndarray, margin: float) -> np.ndarray:
+    """(N, 4) box head targets: the edges of ``target_xyxy`` minus those of ``xyxy`` (both (N, 4)
+    [x1, y1, x2, y2] px), in units of ``BOX_DELTA_SCALE`` x the side of ``xyxy``'s crop (what the
+    network sees: an offset of one crop pixel means the same whatever the box's size)."""
+    xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    side = crop_sides(xyxy, margin)
+    return (np.asarray(target_xyxy, dtype=np.float64).reshape(-1, 4) - xyxy) / (BOX_DELTA_SCALE * side[:, None])
+
+
+def apply_box_deltas(xyxy: np.ndarray, deltas: np.ndarray, margin: float, min_size: float = 2.0) -> np.ndarray:
+    """The boxes (N, 4) [x1, y1, x2, y2] px that the box head's ``deltas`` (N, 4) put in place of
+    ``xyxy`` (the inverse of :func:`box_deltas`); each side at least ``min_size`` px."""
+    xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    side = crop_sides(xyxy, margin)
+    out = xyxy + np.asarray(deltas, dtype=np.float64).reshape(-1, 4) * (BOX_DELTA_SCALE * side[:, None])
+    out[:, 2:] = np.maximum(out[:, 2:], out[:, :2] + min_size)
+    return out
+
+
+def xyxy_continuous_to_xywh(xyxy: np.ndarray) -> np.ndarray:
+    """Continuous [x1, y1, x2, y2] -> BOP pixel-index boxes [x, y, w, h] (the inverse of
+    :func:`xywh_to_xyxy_continuous`)."""
+    b = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    return np.stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 0] - 1, b[:, 3] - b[:, 1] - 1], 1)
+
+
 def xywh_to_xyxy_continuous(boxes: np.ndarray) -> np.ndarray:
     """BOP pixel-index boxes [x, y, w, h] (w = x_max - x_min) -> continuous [x1, y1, x2, y2]."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -84,7 +123,7 @@ class ClassifierConfig:
     + stages of ``widths`` = its 5 channel widths, ``depth`` extra convs per stage; it can be
     warm-started from an exported detector), then the average and the max over the cells of the
     last two stages, concatenated, linear (max pooling keeps a small local detail such as a
-    notch)."""
+    notch). box_head: a second linear output of 4 box edge offsets (:func:`box_deltas`)."""
 
     obj_ids: list = field(default_factory=list)
     crop: int = 112
@@ -92,12 +131,14 @@ class ClassifierConfig:
     widths: tuple = (24, 48, 96, 128)
     arch: str = "plain"
     depth: tuple = (0, 1, 2, 2)
+    box_head: bool = False
 
     def __post_init__(self):
         self.obj_ids = [int(o) for o in self.obj_ids]
         self.crop, self.margin = int(self.crop), float(self.margin)
         self.widths = tuple(int(w) for w in self.widths)
         self.depth = tuple(int(d) for d in self.depth)
+        self.box_head = bool(self.box_head)
         if self.arch not in ("plain", "detector"):
             raise ValueError(f"arch must be plain or detector, got {self.arch!r}")
         if self.arch == "detector" and (len(self.widths) != 5 or len(self.depth) != 4):
@@ -114,12 +155,13 @@ class ClassifierConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ClassifierConfig":
-        return cls(**{k: d[k] for k in ("obj_ids", "crop", "margin", "widths", "arch", "depth") if k in d})
+        return cls(**{k: d[k] for k in ("obj_ids", "crop", "margin", "widths", "arch", "depth", "box_head") if k in d})
 
 
 def build_network(config: ClassifierConfig):
     """The torch classifier (conv + BN + ReLU stages, global average pool, linear) whose
-    forward takes (B, 3, S, S) float32 RGB in [0, 1] and returns logits (B, C + 1)."""
+    forward takes (B, 3, S, S) float32 RGB in [0, 1] and returns logits (B, C + 1);
+    ``forward_all`` also the box head's deltas (B, 4) (zeros without a box head)."""
     import torch
     from torch import nn
 
@@ -141,22 +183,32 @@ def build_network(config: ClassifierConfig):
                 n_feat = 2 * (cfg.widths[-1] + cfg.widths[-2])
             self.dropout = nn.Dropout(0.2)
             self.fc = nn.Linear(n_feat, cfg.n_classes)
+            if cfg.box_head:  # starts at "the box is right" (zero offsets)
+                self.box = nn.Linear(n_feat, 4)
+                nn.init.zeros_(self.box.weight)
+                nn.init.zeros_(self.box.bias)
             self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
             self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
 
-        def forward(self, x):
+        def features_of(self, x):
             x = (x - self.mean) / self.std
             if self.config.arch == "plain":
-                x = self.features(x).mean((2, 3))
-            else:
-                x = self.stem(x)
-                feats = []
-                for st in self.stages:
-                    x = st(x)
-                    feats.append(x)
-                a, b = feats[-2], feats[-1]
-                x = torch.cat([a.mean((2, 3)), a.amax((2, 3)), b.mean((2, 3)), b.amax((2, 3))], 1)
-            return self.fc(self.dropout(x))
+                return self.features(x).mean((2, 3))
+            x = self.stem(x)
+            feats = []
+            for st in self.stages:
+                x = st(x)
+                feats.append(x)
+            a, b = feats[-2], feats[-1]
+            return torch.cat([a.mean((2, 3)), a.amax((2, 3)), b.mean((2, 3)), b.amax((2, 3))], 1)
+
+        def forward(self, x):
+            return self.fc(self.dropout(self.features_of(x)))
+
+        def forward_all(self, x):
+            f = self.features_of(x)
+            deltas = self.box(f) if self.config.box_head else f.new_zeros((len(f), 4))
+            return self.fc(self.dropout(f)), deltas
 
         def checkpoint(self) -> dict:
             return {"config": self.config.to_dict(), "state_dict": self.state_dict()}
@@ -202,8 +254,8 @@ def network_from_checkpoint(ck: dict):
 
 def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset: int = 17) -> Path:
     """Write ``net`` as one ONNX file: input ``crops`` (B, 3, S, S) float32 RGB [0, 1] (dynamic
-    batch), output ``probs`` (B, C + 1) softmax; metadata ``cosy_classifier`` (config JSON, kind
-    "classifier")."""
+    batch), output ``probs`` (B, C + 1) softmax and, with a box head, ``deltas`` (B, 4)
+    (:func:`box_deltas`); metadata ``cosy_classifier`` (config JSON, kind "classifier")."""
     import copy
     import warnings
 
@@ -218,9 +270,13 @@ def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset
             self.m = m
 
         def forward(self, x):
+            if self.m.config.box_head:
+                logits, deltas = self.m.forward_all(x)
+                return torch.softmax(logits, dim=1), deltas
             return torch.softmax(self.m(x), dim=1)
 
     cfg = net.config
+    outputs = ["probs", "deltas"] if cfg.box_head else ["probs"]
     wrapper = Softmax(copy.deepcopy(net).cpu().float().eval())
     dummy = torch.rand(2, 3, cfg.crop, cfg.crop)
     meta = dict(cfg.to_dict(), kind="classifier", classes=[str(o) for o in cfg.obj_ids] + ["background"],
@@ -229,8 +285,9 @@ def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset
     with atomic_path(path) as tmp:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            torch.onnx.export(wrapper, (dummy,), str(tmp), input_names=["crops"], output_names=["probs"],
-                              dynamic_axes={"crops": {0: "batch"}, "probs": {0: "batch"}}, opset_version=opset,
+            torch.onnx.export(wrapper, (dummy,), str(tmp), input_names=["crops"], output_names=outputs,
+                              dynamic_axes={"crops": {0: "batch"}, **{o: {0: "batch"} for o in outputs}},
+                              opset_version=opset,
                               dynamo=False, external_data=False)
         m = onnx.load(str(tmp))
         for key, value in ((METADATA_KEY, json.dumps(meta)), ("kind", "classifier"),
@@ -246,8 +303,10 @@ class OnnxClassifier:
     """An exported box classifier run by onnxruntime.
 
     ``classify(rgb, boxes_xywh)`` -> (N, C + 1) float64 probabilities (columns: ``obj_ids`` then
-    background) of BOP pixel-index boxes [x, y, w, h] of the uint8 RGB image. Attributes:
-    ``obj_ids``, ``config`` (:class:`ClassifierConfig`), ``path``."""
+    background) of BOP pixel-index boxes [x, y, w, h] of the uint8 RGB image;
+    ``classify_refine(rgb, boxes_xywh, passes)`` -> (probabilities, refined boxes) with a box
+    head (``has_box_head``). Attributes: ``obj_ids``, ``config`` (:class:`ClassifierConfig`),
+    ``path``."""
 
     def __init__(self, path: str | Path, providers: Sequence[str] = ("cpu",), threads: int | None = None):
         from ..onnxrt import open_session
@@ -267,20 +326,50 @@ class OnnxClassifier:
         self.obj_ids = list(self.config.obj_ids)
         self.path = path
         self._input = self.session.get_inputs()[0].name
+        outputs = [o.name for o in self.session.get_outputs()]
+        if self.config.box_head and "deltas" not in outputs:
+            raise CosyError("classifier metadata names a box head but the graph has no 'deltas' output", path=path)
+        self._outputs = ["probs", "deltas"] if self.config.box_head else [outputs[0]]
+
+    @property
+    def has_box_head(self) -> bool:
+        return self.config.box_head
 
     def __repr__(self) -> str:
         return f"OnnxClassifier({str(self.path)!r}, objects={self.obj_ids}, crop={self.config.crop})"
 
+    def _run(self, crops: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(probabilities (N, C + 1), box deltas (N, 4): zeros without a box head) of uint8 crops (N, S, S, 3)."""
+        if len(crops) == 0:
+            return np.zeros((0, len(self.obj_ids) + 1)), np.zeros((0, 4))
+        x = np.ascontiguousarray(crops.transpose(0, 3, 1, 2), dtype=np.float32) * np.float32(1 / 255.0)
+        out = self.session.run(self._outputs, {self._input: x})
+        deltas = out[1].astype(np.float64) if len(out) > 1 else np.zeros((len(crops), 4))
+        return out[0].astype(np.float64), deltas
+
     def classify_crops(self, crops: np.ndarray) -> np.ndarray:
         """(N, C + 1) probabilities of uint8 crops (N, S, S, 3)."""
-        if len(crops) == 0:
-            return np.zeros((0, len(self.obj_ids) + 1))
-        x = np.ascontiguousarray(crops.transpose(0, 3, 1, 2), dtype=np.float32) * np.float32(1 / 255.0)
-        return self.session.run(None, {self._input: x})[0].astype(np.float64)
+        return self._run(crops)[0]
 
     def classify(self, rgb: np.ndarray, boxes_xywh: np.ndarray) -> np.ndarray:
         crops = crop_boxes(np.asarray(rgb), xywh_to_xyxy_continuous(boxes_xywh), self.config.crop, self.config.margin)
         return self.classify_crops(crops)
+
+    def classify_refine(self, rgb: np.ndarray, boxes_xywh: np.ndarray, passes: int = 1
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """(probabilities (N, C + 1), boxes (N, 4) [x, y, w, h]): ``passes`` times, crop the boxes,
+        move them by the box head's offsets; the probabilities are those of the last crops (of the
+        refined boxes when there is one more classification than moves: passes moves, then one
+        look at the final boxes). Without a box head or with ``passes`` 0: :meth:`classify` and
+        the boxes as given."""
+        rgb = np.asarray(rgb)
+        xyxy = xywh_to_xyxy_continuous(boxes_xywh)
+        c = self.config
+        probs, deltas = self._run(crop_boxes(rgb, xyxy, c.crop, c.margin))
+        for _ in range(max(int(passes), 0) if c.box_head else 0):
+            xyxy = apply_box_deltas(xyxy, deltas, c.margin)
+            probs, deltas = self._run(crop_boxes(rgb, xyxy, c.crop, c.margin))
+        return probs, xyxy_continuous_to_xywh(xyxy)
 
 
 # ---------------------------------------------------------------------------------- rescoring
@@ -340,4 +429,5 @@ def rescore(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, probs: np
 
 
 __all__ = ["ClassifierConfig", "build_network", "network_from_checkpoint", "export_onnx", "OnnxClassifier",
-           "crop_boxes", "xywh_to_xyxy_continuous", "rescore", "RULE_DEFAULTS", "METADATA_KEY"]
+           "crop_boxes", "crop_sides", "box_deltas", "apply_box_deltas", "xywh_to_xyxy_continuous",
+           "xyxy_continuous_to_xywh", "rescore", "RULE_DEFAULTS", "METADATA_KEY", "BOX_DELTA_SCALE"]

@@ -10,7 +10,8 @@ Exactly one source:
   classifier knows exactly the dataset's objects, ``none``, or the path of one; see
   :mod:`cosy_cli.detection.classifier`), every box is cropped from the full-resolution image,
   classified, and emitted once per plausible label (score = detector score x the label's
-  probability; :func:`~cosy_cli.detection.classifier.rescore`),
+  probability; :func:`~cosy_cli.detection.classifier.rescore`); a classifier with a box head
+  first moves each box onto the object (``refine_boxes`` passes, each a crop of the moved box),
   followed by per-class NMS again (``min_score`` then stays the detector's threshold: the labels
   of a kept box may score less); the BOP ``time`` field is the seconds for that image
   (detector + classifier);
@@ -64,6 +65,7 @@ CONFS = {
         "label_mix": RULE_DEFAULTS["label_mix"],      # classifier: weight of the detector's label
         "label_ratio": RULE_DEFAULTS["label_ratio"],  # classifier: emit labels with p >= this x the best p
         "background": RULE_DEFAULTS["background"],    # classifier: objectness x (1 - p_background) ** this
+        "refine_boxes": 1,       # classifier with a box head: passes that move each box onto its object (0: off)
     },
 }
 
@@ -78,6 +80,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["min_visib_fract"], c["max_per_image"] = float(c["min_visib_fract"]), int(c["max_per_image"])
         c["label_mix"], c["label_ratio"] = float(c["label_mix"]), float(c["label_ratio"])
         c["background"] = float(c["background"])
+        c["refine_boxes"] = int(c["refine_boxes"])
         c["classifier"] = "none" if c["classifier"] in (None, False) else str(c["classifier"])
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None
@@ -85,9 +88,11 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
             and c["max_per_image"] >= 1):
         raise CosyError("detect settings out of range (min_score, min_visib_fract in [0, 1], nms_iou in (0, 1], "
                         f"max_per_image >= 1): {c}")
-    if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0):
-        raise CosyError("detect settings out of range (label_mix in [0, 1], label_ratio in (0, 1], background >= 0): "
-                        f"{c['label_mix']}, {c['label_ratio']}, {c['background']}")
+    if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0
+            and 0 <= c["refine_boxes"] <= 5):
+        raise CosyError("detect settings out of range (label_mix in [0, 1], label_ratio in (0, 1], background >= 0, "
+                        f"refine_boxes 0-5): {c['label_mix']}, {c['label_ratio']}, {c['background']}, "
+                        f"{c['refine_boxes']}")
     return c
 
 
@@ -173,7 +178,11 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
             from .classifier import rescore
 
             t1 = time.perf_counter()
-            probs = classifier.classify(rgb, boxes)
+            if conf["refine_boxes"] and getattr(classifier, "has_box_head", False):
+                probs, boxes = classifier.classify_refine(rgb, boxes, conf["refine_boxes"])
+                boxes = xyxy_to_xywh(clip_xyxy(boxes, rgb.shape[1], rgb.shape[0]))
+            else:
+                probs = classifier.classify(rgb, boxes)
             boxes, scores, labels, _ = rescore(boxes, scores, labels, probs, classifier.obj_ids,
                                                conf["label_mix"], conf["label_ratio"], conf["background"])
             # min_score was the detector's (objectness) threshold: a kept box is not dropped for being split
@@ -315,6 +324,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         "classifier": None if clf is None else {
             "model": inputs["classifier"], "label_mix": conf["label_mix"], "label_ratio": conf["label_ratio"],
             "background": conf["background"],
+            "refine_boxes": conf["refine_boxes"] if getattr(clf, "has_box_head", False) else 0,
             "time_per_image_s": float(np.mean(clf_times)) if clf_times else None},
         "time_total_s": round(time.perf_counter() - t_start, 3),
     }

@@ -197,7 +197,9 @@ def read_log(path: str | Path) -> list[dict]:
     if not path.is_file():
         return []
     with open(path, newline="") as f:
-        return [{k: (int(v) if k == "step" else float(v)) for k, v in r.items()} for r in csv.DictReader(f)]
+        # a field added since the run began is empty in its older rows: NaN
+        return [{k: (int(v) if k == "step" else float(v) if v not in ("", None) else float("nan"))
+                 for k, v in r.items()} for r in csv.DictReader(f)]
 
 
 def format_value(v) -> str:
@@ -208,7 +210,7 @@ def format_value(v) -> str:
 def truncate_log(path: str | Path, step: int, fields: list[str]) -> None:
     """Drop log rows after ``step`` (logged after the last checkpoint of an interrupted run)."""
     rows = [r for r in read_log(path) if r["step"] <= step]
-    lines = [",".join(fields)] + [",".join(format_value(r[k]) for k in fields) for r in rows]
+    lines = [",".join(fields)] + [",".join(format_value(r[k]) if k in r else "" for k in fields) for r in rows]
     write_text(path, "\n".join(lines) + "\n")
 
 
