@@ -227,6 +227,24 @@ def test_detect_imports_coco_results_and_filters(tmp_path, ds, gt_dets):
     assert r.exit_code == 2 and "inputs changed (detections)" in r.output
 
 
+def test_at_most_n_detections_per_object_and_image(tmp_path, ds, gt_dets):
+    """--max-per-object keeps the best N of each object in each image (one instance of each object
+    per image, as in LM-O: the best-scored box of each label)."""
+    d = pd.concat([gt_dets.assign(score=0.9), gt_dets.assign(score=0.5, x=gt_dets["x"] + 7)], ignore_index=True)
+    src = tmp_path / "dup.json"
+    importers.write_detections(src, d)
+    out = tmp_path / "one.json"
+    r = _run(["detect", "--dataset", SAMPLES, "--scene-id", 1, "--from-json", src, "--out", out,
+              "--max-per-object", 1, "--quiet"])
+    assert r.exit_code == 0, r.output
+    back = bop.read_detections(out)
+    assert back.groupby(["im_id", "obj_id"]).size().max() == 1 and len(back) == len(gt_dets)
+    assert (back["score"] == 0.9).all()  # the better of each pair
+    both = stage.keep_best(d, 0.3, 100, 0)
+    assert len(both) == len(d) and len(stage.keep_best(d, 0.3, 100, 2)) == len(d)
+    assert stage.resolve_conf("default")["max_per_object"] == 0
+
+
 def test_bad_input_exits_2_with_one_line(tmp_path):
     bad = _write(tmp_path / "bad.json", [_det(category_id=42)])
     out = tmp_path / "dets.json"

@@ -26,6 +26,9 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @click.option("--from-gt", is_flag=True, help="The visible GT boxes (scene_gt_info bbox_visib), score 1.")
 @click.option("--min-score", type=click.FloatRange(0, 1), default=None, help="Keep detections scored >= this [0.3].")
 @click.option("--max-per-image", type=click.IntRange(min=1), default=None, help="At most N per image, best first [30].")
+@click.option("--max-per-object", type=click.IntRange(0), default=None,
+              help="At most this many detections per object and image, best first [0: no limit; 1 for datasets "
+                   "with one instance of each object, such as LM-O or YCB-V].")
 @click.option("--nms-iou", type=click.FloatRange(0, 1, min_open=True), default=None,
               help="Detector: per-class NMS IoU threshold [0.5].")
 @click.option("--agnostic-nms-iou", type=click.FloatRange(0, 1, min_open=True), default=None,
@@ -41,10 +44,14 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @click.option("--label-ratio", type=click.FloatRange(0, 1, min_open=True), default=None,
               help="With a classifier: also emit a box under every label whose probability is at least this x "
                    "the best label's [0.2].")
+@click.option("--refine-boxes", type=click.IntRange(0, 5), default=None,
+              help="With a classifier that has a box head (`cosy train classifier --preset real`): passes that "
+                   "move each box onto its object, each from a crop of the moved box [1; 0: off].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
 @user_errors
 def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images, from_gt, min_score, max_per_image,
-           nms_iou, agnostic_nms_iou, min_visib, providers, classifier, label_ratio, overwrite) -> None:
+           max_per_object, nms_iou, agnostic_nms_iou, min_visib, providers, classifier, label_ratio, refine_boxes,
+           overwrite) -> None:
     """2D detections of the dataset's objects, one BOP detections file (CosyPose's first input).
 
     Sources: the shipped detector (default) or --model, --from-json (another tool's detections,
@@ -54,9 +61,10 @@ def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images,
     from ..detection import stage
 
     dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
-    c = stage.resolve_conf("default", min_score=min_score, max_per_image=max_per_image, nms_iou=nms_iou,
+    c = stage.resolve_conf("default", min_score=min_score, max_per_image=max_per_image,
+                           max_per_object=max_per_object, nms_iou=nms_iou,
                            agnostic_nms_iou=agnostic_nms_iou, min_visib_fract=min_visib, providers=providers,
-                           classifier=classifier, label_ratio=label_ratio)
+                           classifier=classifier, label_ratio=label_ratio, refine_boxes=refine_boxes)
     stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids, model=model, from_json=from_json,
                coco_images=coco_images, from_gt=from_gt, log=console.echo, progress=True)
 

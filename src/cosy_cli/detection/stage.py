@@ -56,6 +56,8 @@ CONFS = {
     "default": {
         "min_score": 0.3,        # keep detections scored at least this (model and imported files)
         "max_per_image": 30,     # at most this many per image, best scores first
+        "max_per_object": 0,     # at most this many per object and image, best first (0: no limit; 1 suits
+                                 # datasets with one instance of each object, e.g. LM-O, YCB-V)
         "nms_iou": 0.5,          # model: per-class NMS, drop a box overlapping a better one by more
         "agnostic_nms_iou": 1.0,  # model: also across labels (one object, two labels); 1.0 = off
         "min_visib_fract": 0.1,  # from_gt: boxes of instances at least this visible (BOP targets: 0.1)
@@ -78,6 +80,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["min_score"], c["nms_iou"] = float(c["min_score"]), float(c["nms_iou"])
         c["agnostic_nms_iou"] = float(c["agnostic_nms_iou"])
         c["min_visib_fract"], c["max_per_image"] = float(c["min_visib_fract"]), int(c["max_per_image"])
+        c["max_per_object"] = int(c["max_per_object"])
         c["label_mix"], c["label_ratio"] = float(c["label_mix"]), float(c["label_ratio"])
         c["background"] = float(c["background"])
         c["refine_boxes"] = int(c["refine_boxes"])
@@ -85,7 +88,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None
     if not (0 <= c["min_score"] <= 1 and 0 < c["nms_iou"] <= 1 and 0 < c["agnostic_nms_iou"] <= 1 and 0 <= c["min_visib_fract"] <= 1
-            and c["max_per_image"] >= 1):
+            and c["max_per_image"] >= 1 and c["max_per_object"] >= 0):
         raise CosyError("detect settings out of range (min_score, min_visib_fract in [0, 1], nms_iou in (0, 1], "
                         f"max_per_image >= 1): {c}")
     if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0
@@ -131,11 +134,14 @@ def sidecar_path(out: str | Path) -> Path:
     return out.with_name(out.stem + ".meta.json") if out.suffix == ".json" else out.with_name(out.name + ".meta.json")
 
 
-def keep_best(dets: pd.DataFrame, min_score: float, max_per_image: int) -> pd.DataFrame:
-    """Rows scored >= ``min_score``, at most ``max_per_image`` per (scene_id, im_id) (best first);
-    sorted by scene, image, decreasing score."""
+def keep_best(dets: pd.DataFrame, min_score: float, max_per_image: int, max_per_object: int = 0) -> pd.DataFrame:
+    """Rows scored >= ``min_score``, at most ``max_per_object`` per (scene_id, im_id, obj_id) (0: no
+    limit) and ``max_per_image`` per (scene_id, im_id) (best first); sorted by scene, image,
+    decreasing score."""
     d = dets[dets["score"].to_numpy() >= min_score]
     d = d.sort_values(["scene_id", "im_id", "score"], ascending=[True, True, False], kind="stable")
+    if max_per_object > 0:
+        d = d[d.groupby(["scene_id", "im_id", "obj_id"]).cumcount().to_numpy() < max_per_object]
     rank = d.groupby(["scene_id", "im_id"]).cumcount().to_numpy()
     return d[rank < max_per_image]
 
@@ -298,14 +304,15 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         raw = importers.read_detections_any(from_json, ds, coco_images=coco_images)
         n_raw = len(raw)
         raw = raw[raw["scene_id"].isin(scene_ids).to_numpy()]
-        dets = keep_best(raw, conf["min_score"], conf["max_per_image"])
+        dets = keep_best(raw, conf["min_score"], conf["max_per_image"], conf["max_per_object"])
         what = f"{raw.attrs.get('format', 'BOP').upper()} file {from_json}"
         log(f"detect: {n_raw} detections read from {from_json}; {len(raw)} in the chosen scenes; kept {len(dets)} "
             f"(score >= {conf['min_score']:g}, at most {conf['max_per_image']} per image)")
     else:
         dets, times = run_detector(detector, ds, scene_ids, conf, log=log, progress=progress, classifier=clf,
                                    classifier_times=clf_times)
-        dets = keep_best(dets, 0.0 if clf is not None else conf["min_score"], conf["max_per_image"])
+        dets = keep_best(dets, 0.0 if clf is not None else conf["min_score"], conf["max_per_image"],
+                         conf["max_per_object"])
         what = f"detector {model if model is not None else inputs['model']['object']}"
         if clf is not None:
             what += f" + box classifier {getattr(clf, 'path', type(clf).__qualname__)}"
