@@ -137,6 +137,19 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
     assert r.exit_code == 2 and "sometimes" in r.output
     with pytest.raises(Exception, match="image_weight"):
         estimate_stage.resolve_conf("default", image_weight=-1)
+    # --box-scales: every hypothesis also verified nearer and farther (loose detector boxes)
+    out2 = tmp_path / "bs.csv"
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+              "--depth-refine", "none", "--verify-top", "8", "--rgb-refine", "none", "--top-k", "2",
+              "--box-scales", "0.87,1,1.15", "--templates-dir", str(templates_dir), "--out", str(out2)])
+    assert r.exit_code == 0, r.output
+    assert "8 x 3 distances verified by rendering" in r.output
+    assert json.loads((tmp_path / "bs.json").read_text())["conf"]["box_scales"] == [0.87, 1.0, 1.15]
+    assert len(bop.read_results(out2)) == len(bop.read_results(out))
+    for bad in ("0", "1,1", "near"):
+        r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--box-scales", bad, "--out", str(out2)])
+        assert r.exit_code == 2 and "box_scales" in r.output, (bad, r.output)
+    assert estimate_stage.resolve_conf("default")["box_scales"] == [1.0]
     from cosy_cli.errors import CosyError
 
     with pytest.raises(CosyError, match="icp_screen: expected a whole number, got 'many'"):

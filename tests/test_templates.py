@@ -357,3 +357,23 @@ def test_cli_builds_and_reports_bad_models(tmp_path):
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "models_info.json" in r.output
     r = CliRunner().invoke(cli, args[:5] + ["--crop", "64"])
     assert r.exit_code == 2 and "WIDTHxHEIGHT" in r.output
+
+
+def test_hypotheses_at_other_distances_keep_their_projected_centre():
+    """at_distances: each hypothesis slides along its line of sight (t x factor): the projection of
+    the object's origin stays, its image size scales by 1 / factor, scores and indices follow."""
+    from cosy_cli.singleview.training_free.templates import TemplateHypotheses, at_distances
+
+    rng = np.random.default_rng(0)
+    T = np.tile(np.eye(4), (2, 3, 1, 1))
+    T[..., :3, 3] = rng.uniform([-100, -100, 500], [100, 100, 900], (2, 3, 3))
+    h = TemplateHypotheses(T, rng.uniform(0, 1, (2, 3)), np.arange(6).reshape(2, 3))
+    v = at_distances(h, [0.87, 1.0, 1.15])
+    assert v.T_cam_obj.shape == (2, 9, 4, 4) and v.scores.shape == (2, 9)
+    np.testing.assert_allclose(v.T_cam_obj[:, 1::3], T)  # factor 1: the hypotheses as they were
+    np.testing.assert_allclose(v.T_cam_obj[:, 0::3, 2, 3], 0.87 * T[..., 2, 3])
+    t = v.T_cam_obj[..., :3, 3]
+    proj = t[..., :2] / t[..., 2:]
+    np.testing.assert_allclose(proj, np.repeat(T[..., :2, 3] / T[..., 2:3, 3], 3, 1))
+    np.testing.assert_allclose(v.T_cam_obj[..., :3, :3], np.repeat(T[..., :3, :3], 3, 1))
+    assert (v.template_index[:, :3] == h.template_index[:, :1]).all() and (v.scores[:, 3:6] == h.scores[:, 1:2]).all()

@@ -83,17 +83,19 @@ CONFS = {
         "image_weight": 1.0,          # with depth and verification: pick by depth fit + this x image score
         "hypotheses": 1,              # poses per detection written (>1: the verified runners-up in a sidecar CSV)
         "masks": "auto",              # auto: use the detections' segmentations where they have them | none
+        "box_scales": [1.0],          # templates: each hypothesis also at these factors of its distance (loose boxes)
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
-              "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto"},
+              "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto",
+              "box_scales": [1.0]},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
-                      "masks": "auto"},
+                      "masks": "auto", "box_scales": [1.0]},
 }
 
 
@@ -118,6 +120,15 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
                 from None
     c["min_visib_fract"] = float(c["min_visib_fract"])
     c["image_weight"] = float(c["image_weight"])
+    bs = c["box_scales"]
+    try:
+        bs = [float(v) for v in (bs.split(",") if isinstance(bs, str) else (bs if isinstance(bs, (list, tuple)) else [bs]))]
+    except (TypeError, ValueError):
+        raise CosyError(f"estimate setting box_scales: expected distance factors such as 0.87,1,1.15, got {bs!r}") \
+            from None
+    if not bs or len(bs) > 9 or not all(0.3 <= v <= 3.0 for v in bs) or len(set(bs)) != len(bs):
+        raise CosyError(f"estimate setting box_scales: 1 to 9 distinct factors in [0.3, 3], got {bs}")
+    c["box_scales"] = bs
     if c["image_weight"] < 0:
         raise CosyError("estimate setting image_weight must be >= 0")
     if c["verify_top"] != "auto" and c["verify_top"] < 0:
@@ -301,13 +312,15 @@ class Estimator:
             hyp = self.coarse_net.coarse(rgb, K, boxes, obj_ids)[:, None]
             hyp_score = np.ones((N, 1))
         else:
-            from .training_free.templates import MatchParams, match_templates
+            from .training_free.templates import MatchParams, at_distances, match_templates
 
             nv = c.get("verify_top", 0)
             verified = nv > 0
             if verified:  # many distinct templates, re-ranked by rendering them against the image
                 h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=max(nv, c["top_k"]),
                                     params=MatchParams(nms_deg=10.0))
+                if c.get("box_scales", [1.0]) != [1.0]:  # a loose box: its size says the distance only roughly
+                    h = at_distances(h, c["box_scales"])
                 # the cascade (coarse copies first) with depth too: see verify's module docstring
                 ranked = self.verifier.rank(rgb, K, boxes, obj_ids, h.T_cam_obj, h.scores, masks=masks)
                 hyp, hyp_score = ranked.T_cam_obj[:, :c["top_k"]], ranked.score[:, :c["top_k"]]
@@ -404,8 +417,9 @@ def decide(conf: dict, *, coarse_model: Path | None, refiner_model: Path | None,
 def describe(conf: dict) -> str:
     parts = [f"coarse {conf['coarse']}" + (f" (top {conf['top_k']})" if conf["coarse"] == "templates" else "")]
     if conf["coarse"] == "templates" and conf.get("verify_top", 0) > 0:
-        parts[0] += f", {conf['verify_top']} verified by rendering" + (" (learned scorer)" if conf.get("scorer")
-                                                                       else "")
+        parts[0] += (f", {conf['verify_top']}" + (f" x {len(conf['box_scales'])} distances"
+                                                  if len(conf.get("box_scales", [1.0])) > 1 else "")
+                     + " verified by rendering" + (" (learned scorer)" if conf.get("scorer") else ""))
     if conf.get("rgb_refine") in ("search", "contour", "search+contour"):
         parts.append({"search": "RGB refinement", "contour": "contour alignment",
                       "search+contour": "RGB refinement + contour alignment"}[conf["rgb_refine"]])

@@ -789,6 +789,21 @@ def poses_from_templates(t: ObjectTemplates, index: np.ndarray, K: np.ndarray, b
     return make_pose(R, rhat * dist[..., None])
 
 
+def at_distances(h: TemplateHypotheses, factors) -> TemplateHypotheses:
+    """Every hypothesis of ``h`` also at other distances: its translation times each factor of
+    ``factors`` (the object slides along its line of sight: its projected centre stays, its image
+    size scales by 1 / factor). Template retrieval takes the distance from the detection box's
+    size, so a box 15 % too large puts the object 15 % too close; the verification by rendering
+    then chooses among the distances. Returns (N, k x F) hypotheses, each hypothesis's variants
+    side by side (in the order of ``factors``), its template score and index repeated."""
+    f = np.asarray(list(factors), dtype=np.float64)
+    N, k = h.T_cam_obj.shape[:2]
+    T = np.repeat(h.T_cam_obj[:, :, None], len(f), 2)  # (N, k, F, 4, 4)
+    T[..., :3, 3] *= f[None, None, :, None]
+    return TemplateHypotheses(T.reshape(N, k * len(f), 4, 4), np.repeat(h.scores, len(f), 1),
+                              np.repeat(h.template_index, len(f), 1))
+
+
 def select_top(t: ObjectTemplates, scores: np.ndarray, k: int, nms_deg: float = 0.0, pool: int = 256) -> np.ndarray:
     """Indices of the ``k`` best templates by score, best first. With ``nms_deg`` > 0, a template is
     skipped when its rotation is within ``nms_deg`` degrees of a better one already taken (among
