@@ -194,6 +194,15 @@ def test_set_overrides_reach_the_stage_settings(tmp_path, candidates):
     assert confs["match"]["threshold_mm"] == 30 and confs["match"]["views_per_group"] == 4
     groups = json.loads((tmp_path / "r" / "scenes" / "000001" / "match" / "groups.json").read_text())
     assert len(groups["groups"]) == 2
+    # --classifier is detect.classifier; the onboarded configuration's settings (a detector trained from meshes)
+    r = CliRunner().invoke(cli, ["run", "--dataset", str(DATA), "--out", str(tmp_path / "r2"), "--scene-id", "1",
+                                 "--candidates", str(candidates), "--to", "match", "--quiet", "--classifier", "none",
+                                 "--config", "onboarded"])
+    assert r.exit_code == 0, r.output
+    confs = json.loads((tmp_path / "r2" / "run.json").read_text())["confs"]
+    assert confs["detect"]["classifier"] == "none" and confs["detect"]["max_per_object"] == 1
+    assert confs["detect"]["min_score"] == 0.05 and confs["estimate"]["box_scales"] == [0.87, 1.0, 1.15]
+    assert confs["match"] == run_stage.resolve_confs("default")["match"]
 
 
 def test_code_version_follows_the_package_files_not_the_commit(tmp_path, monkeypatch):

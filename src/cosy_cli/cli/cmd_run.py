@@ -17,13 +17,17 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="Run folder (run.json, scenes/, refine/predictions.csv, report.html).")
 @click.option("--config", "config", default="default", show_default=True,
-              help="default (best available), paper (networks, RGB only) or fast (fewer hypotheses, no VSD).")
+              help="default (best available), paper (networks, RGB only), fast (fewer hypotheses, no VSD) or "
+                   "onboarded (boxes of a detector trained from meshes: threshold 0.05, the best box of each "
+                   "object per image, each hypothesis also verified nearer and farther).")
 @click.option("--detections", type=click.Path(path_type=Path), default=None,
               help="Detections made elsewhere (BOP detections JSON or COCO results).")
 @click.option("--coco-images", type=click.Path(path_type=Path), default=None,
               help="COCO dataset JSON mapping the COCO image ids of --detections to BOP scene/image ids.")
 @click.option("--from-gt", is_flag=True, help="Visible GT boxes as detections (ablations).")
 @click.option("--model", type=click.Path(path_type=Path), default=None, help="Detector ONNX [the shipped one].")
+@click.option("--classifier", default=None, metavar="auto|none|PATH",
+              help="Box classifier of the detect stage (same as --set detect.classifier=...) [auto].")
 @click.option("--candidates", type=click.Path(path_type=Path), default=None,
               help="Existing single-view candidates (BOP results CSV): start at match.")
 @click.option("--models", "models_dir", type=click.Path(path_type=Path), default=None,
@@ -53,7 +57,8 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
 @click.option("--dask-scheduler", default=None, help="Run the scenes on this Dask cluster (tcp://HOST:PORT).")
 @click.option("--overwrite", is_flag=True, help="Rerun every stage even if it is up to date.")
 @user_errors
-def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, candidates, models_dir,
+def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, from_gt, model, classifier, candidates,
+        models_dir,
         templates_dir, scorer_model, views_per_group, known_cameras, grouping, first, last, settings, workers, dask_scheduler,
         overwrite) -> None:
     """Detect -> estimate -> match -> refine -> evaluate -> report, per scene, in one run folder.
@@ -67,6 +72,8 @@ def run(scene, dataset, split, scene_ids, out, config, detections, coco_images, 
     dataset, split, scene_ids = resolve_scenes(scene, dataset, split, scene_ids)
 
     overrides = run_stage.parse_settings(settings)
+    if classifier is not None:
+        overrides.setdefault("detect", {})["classifier"] = classifier
     overrides.setdefault("match", {}).update(
         {k: v for k, v in (("views_per_group", views_per_group), ("known_cameras", known_cameras or None)) if v is not None})
     run_stage.main(config, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
