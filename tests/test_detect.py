@@ -205,16 +205,20 @@ def test_detect_from_gt_feeds_estimate_and_is_cached(tmp_path, ds):
     assert len(res) == 64 and set(res.table["obj_id"]) == set(range(1, 9))
 
 
+def _import_filtered(src: Path, out: Path, *options):
+    """`cosy detect --from-json src` of scene 1 with filter options: the detections it kept."""
+    r = _run(["detect", "--dataset", SAMPLES, "--scene-id", 1, "--from-json", src, "--out", out, *options, "--quiet"])
+    assert r.exit_code == 0, r.output
+    return bop.read_detections(out)
+
+
 def test_detect_imports_coco_results_and_filters(tmp_path, ds, gt_dets):
     src = tmp_path / "coco.json"
     d = gt_dets.copy()
     d.loc[d.index[:5], "score"] = 0.1  # under --min-score
     importers.write_coco_results(src, d)
     out = tmp_path / "dets.json"
-    r = _run(["detect", "--dataset", SAMPLES, "--scene-id", 1, "--from-json", src, "--out", out,
-              "--max-per-image", 6, "--quiet"])
-    assert r.exit_code == 0, r.output
-    back = bop.read_detections(out)
+    back = _import_filtered(src, out, "--max-per-image", 6)
     expect = stage.keep_best(d[d["score"] >= 0.3], 0.3, 6)
     assert len(back) == len(expect) and back.groupby("im_id").size().max() == 6
     assert (back["score"] >= 0.3).all()
@@ -231,13 +235,8 @@ def test_at_most_n_detections_per_object_and_image(tmp_path, ds, gt_dets):
     """--max-per-object keeps the best N of each object in each image (one instance of each object
     per image, as in LM-O: the best-scored box of each label)."""
     d = pd.concat([gt_dets.assign(score=0.9), gt_dets.assign(score=0.5, x=gt_dets["x"] + 7)], ignore_index=True)
-    src = tmp_path / "dup.json"
-    importers.write_detections(src, d)
-    out = tmp_path / "one.json"
-    r = _run(["detect", "--dataset", SAMPLES, "--scene-id", 1, "--from-json", src, "--out", out,
-              "--max-per-object", 1, "--quiet"])
-    assert r.exit_code == 0, r.output
-    back = bop.read_detections(out)
+    importers.write_detections(tmp_path / "dup.json", d)
+    back = _import_filtered(tmp_path / "dup.json", tmp_path / "one.json", "--max-per-object", 1)
     assert back.groupby(["im_id", "obj_id"]).size().max() == 1 and len(back) == len(gt_dets)
     assert (back["score"] == 0.9).all()  # the better of each pair
     both = stage.keep_best(d, 0.3, 100, 0)
