@@ -18,7 +18,8 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
               help="Run folder (run.json, scenes/, refine/predictions.csv, report.html).")
 @click.option("--config", "config", default="default", show_default=True,
               help="default (best available), paper (networks, RGB only), fast (fewer hypotheses, no VSD) or "
-                   "onboarded (boxes of a detector trained from meshes: threshold 0.05, the best box of each "
+                   "onboarded (boxes of a detector trained from meshes: 100 proposals down to score 0.01, two box-head "
+                   "passes of the classifier, the best box of each "
                    "object per image, each hypothesis also verified nearer and farther).")
 @click.option("--detections", type=click.Path(path_type=Path), default=None,
               help="Detections made elsewhere (BOP detections JSON or COCO results).")

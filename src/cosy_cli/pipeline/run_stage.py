@@ -51,10 +51,11 @@ CONFS: dict[str, dict] = {
     "paper": {"detect": "default", "estimate": "paper", "match": "paper-norefit", "refine": None,
               "evaluate": "bop19"},
     # Boxes from a detector onboarded from meshes alone (`cosy train detector/classifier --preset real`):
-    # many right boxes score low and fit loosely. A low threshold, the best box of each object in each
-    # image (one instance of each object per image, as in LM-O and YCB-V), each template hypothesis also
-    # verified nearer and farther. Chosen on the odd lmo_dev scenes (docs/results.md).
-    "onboarded": {"detect": {"min_score": 0.05, "max_per_object": 1},
+    # many right boxes score low and fit loosely. Up to 100 proposals down to score 0.01 for the box
+    # classifier, whose box head moves each twice; the best box of each object in each image (one
+    # instance of each object per image, as in LM-O and YCB-V); each template hypothesis also verified
+    # nearer and farther. Chosen on the odd lmo_dev scenes (docs/results.md).
+    "onboarded": {"detect": {"min_score": 0.01, "max_per_image": 100, "refine_boxes": 2, "max_per_object": 1},
                   "estimate": {"box_scales": [0.87, 1.0, 1.15]}, "match": "paper", "refine": None,
                   "evaluate": "bop19"},
     # Quicker: fewer template hypotheses, fewer ICP iterations, no VSD (BOP19 AR from MSSD/MSPD).
