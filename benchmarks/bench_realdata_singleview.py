@@ -227,8 +227,44 @@ def gt_mask_detections(root: Path, split: str, work: Path, min_visib: float = 0.
     return out
 
 
+def classifier_mask_detections(root: Path, split: str, work: Path, classifier: Path, scene_ids=None,
+                               min_visib: float = 0.1) -> Path:
+    """A detections JSON of the visible GT boxes (as --from-gt) whose ``segmentation`` is what a box
+    classifier's mask head (``cosy train classifier --preset real``) sees in each box: its masks with
+    perfect boxes, to compare with the GT masks (:func:`gt_mask_detections`). Prints the mean IoU of
+    those masks with the GT visible masks."""
+    from cosy_cli.detection.classifier import OnnxClassifier, paste_masks
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.io.masks import decode_segmentation, encode_mask
+
+    gt_dets = json.loads(gt_mask_detections(root, split, work, min_visib).read_text())
+    clf = OnnxClassifier(classifier)
+    if not clf.has_mask_head:
+        raise SystemExit(f"{classifier} has no mask head")
+    ds = BopDataset(root, split)
+    by_image: dict = {}
+    for d in gt_dets:
+        if scene_ids is None or d["scene_id"] in scene_ids:
+            by_image.setdefault((d["scene_id"], d["image_id"]), []).append(d)
+    out, ious = [], []
+    for (sid, im), dets in sorted(by_image.items()):
+        rgb = ds.read_rgb(sid, im)
+        boxes = np.array([d["bbox"] for d in dets], np.float64)
+        _, xyxy, masks = clf.classify_refine_masks(rgb, boxes, passes=0)
+        for d, m in zip(dets, paste_masks(masks, xyxy, clf.config.margin, rgb.shape[:2])):
+            gt = decode_segmentation(d["segmentation"], rgb.shape[:2])
+            ious.append((m & gt).sum() / max((m | gt).sum(), 1))
+            out.append(dict(d, segmentation=encode_mask(m)))
+    print(f"classifier masks on the GT boxes: mean IoU with the GT visible masks {np.mean(ious):.3f} "
+          f"(median {np.median(ious):.3f}, {len(ious)} instances; >= 0.5: {np.mean(np.array(ious) >= 0.5):.2f})",
+          flush=True)
+    path = work / f"{root.name}_{split}_{Path(classifier).stem}_masks.json"
+    path.write_text(json.dumps(out))
+    return path
+
+
 def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path, im_ids=None,
-        scorer: Path | None = None) -> None:
+        scorer: Path | None = None, classifier: Path | None = None) -> None:
     from cosy_cli.evaluation import evaluate_stage
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
@@ -245,12 +281,16 @@ def run(data: str, scene_ids, targets, variants, work: Path, templates_dir: Path
     ds = BopDataset(root, split)
     db = ObjectDatabase.from_models_dir(root / ("models_eval" if (root / "models_eval").is_dir() else "models"))
     for name in variants:
-        # NAME+masks: the GT boxes with the GT visible masks as segmentations (a perfect segmenter)
-        plain, masks, _ = name.partition("+masks")
+        # NAME+masks: the GT boxes with the GT visible masks as segmentations (a perfect segmenter);
+        # NAME+clfmasks: the GT boxes with the masks of a classifier's mask head (--classifier)
+        plain, clfmasks, _ = name.partition("+clfmasks")
+        plain, masks, _ = plain.partition("+masks")
         base, _, learned = plain.partition("+scorer")
         conf = estimate_stage.resolve_conf("default", **VARIANTS[base])
         out = work / f"{data}_{name}.csv"
         dets = gt_mask_detections(root, split, work) if masks else None
+        if clfmasks:
+            dets = classifier_mask_detections(root, split, work, classifier, scene_ids)
         s = estimate_stage.main(conf, root, split, out, overwrite=True, scene_ids=scene_ids, from_gt=dets is None,
                                 detections=dets, templates_dir=templates_dir,
                                 scorer_model=scorer if plain != base else None, log=lambda *_: None, progress=False)
@@ -368,11 +408,16 @@ def main() -> None:
     ap.add_argument("--sweep", default=None,
                     help=f"lmo only: compare verification settings side by side instead ({', '.join(SWEEP)} or all)")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv")
+    ap.add_argument("--classifier", type=Path, default=None,
+                    help="a box classifier with a mask head (cosy train classifier --preset real): a variant named "
+                         "NAME+clfmasks runs NAME on the GT boxes with its masks")
     ap.add_argument("--scorer", type=Path, default=None,
                     help="a learned scorer (cosy train scorer): a variant named NAME+scorer runs NAME with it")
     args = ap.parse_args()
     if any("+scorer" in v for v in args.variants.split(",")) and args.scorer is None:
         ap.error("variants NAME+scorer need --scorer FILE")
+    if any("+clfmasks" in v for v in args.variants.split(",")) and args.classifier is None:
+        ap.error("variants NAME+clfmasks need --classifier FILE")
     if not REALDATA.is_dir():
         print(f"skipped: {REALDATA} is absent")
         return
@@ -388,7 +433,8 @@ def main() -> None:
                 ap.error("--sweep compares the RGB chain: use it with --data lmo")
             sweep(scene_ids, list(SWEEP) if args.sweep == "all" else args.sweep.split(","), args.work / "templates_lmo")
             return
-        run(args.data, scene_ids, None, variants, args.work, args.work / "templates_lmo", scorer=args.scorer)
+        run(args.data, scene_ids, None, variants, args.work, args.work / "templates_lmo", scorer=args.scorer,
+            classifier=args.classifier)
     else:
         frames = _parse_range(args.frames)
         targets = args.work / f"ycbv_targets_{args.frames}.json"

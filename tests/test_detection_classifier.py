@@ -267,19 +267,20 @@ def test_train_resume_and_export_a_classifier(tmp_path):
     assert clf.obj_ids == IDS and clf.config.arch == "detector"
     p = clf.classify(np.zeros((480, 640, 3), np.uint8), np.array([[10, 10, 50, 60], [600, 400, 80, 120]], float))
     assert p.shape == (2, 9) and np.allclose(p.sum(1), 1, atol=1e-4)
-    # a run recorded before the box head existed resumes as it was (no box head), its old log rows kept
+    # a run recorded before the box and mask heads existed resumes as it was (neither head), its old log rows kept
     rec = json.loads((run / "config.json").read_text())
-    assert rec["box_head"] is False
-    for k in ("box_head", "box_weight"):
+    assert rec["box_head"] is False and rec["mask_head"] is False
+    for k in ("box_head", "box_weight", "mask_head", "mask_weight"):
         rec.pop(k)
     (run / "config.json").write_text(json.dumps(rec))
     lines = (run / "log.csv").read_text().splitlines()
-    (run / "log.csv").write_text("\n".join(",".join(v.split(",")[:-1]) for v in lines) + "\n")
+    (run / "log.csv").write_text("\n".join(",".join(v.split(",")[:-2]) for v in lines) + "\n")
     r = _run(base + ["--iterations", 4, "--resume"])
     assert r.exit_code == 0, r.output
     rows = (run / "log.csv").read_text().splitlines()
-    assert rows[0].endswith(",loss_box") and [v.split(",")[0] for v in rows[1:]] == ["1", "2", "3", "4"]
-    assert rows[1].endswith(",") and json.loads((run / "config.json").read_text())["box_head"] is False
+    assert rows[0].endswith(",loss_box,loss_mask") and [v.split(",")[0] for v in rows[1:]] == ["1", "2", "3", "4"]
+    rec = json.loads((run / "config.json").read_text())
+    assert rows[1].endswith(",,") and rec["box_head"] is False and rec["mask_head"] is False
 
 
 # ------------------------------------------------------------------------------------------------
@@ -380,3 +381,123 @@ def test_box_head_learns_to_move_jittered_boxes_onto_rendered_objects(tmp_path):
     raw = TwoBoxDetector().detect(np.zeros((480, 640, 3), np.uint8), 0.1, 30, 0.5)[0]
     assert np.isin(np.round(out[0][["x", "y"]].to_numpy(), 6), np.round(raw[:, :2], 6)).all()
     assert not np.isin(np.round(out[1][["x", "y"]].to_numpy(), 6), np.round(raw[:, :2], 6)).all()
+
+
+# ------------------------------------------------------------------------------------------------
+# mask head
+# ------------------------------------------------------------------------------------------------
+def test_crop_masks_and_paste_masks_are_inverse():
+    """A visible mask cropped the way the training targets are (crop_masks) and pasted back the
+    way cosy detect does (paste_masks) is the same mask; a crop that leaves the image pastes only
+    what lies inside it."""
+    from cosy_cli.detection.classifier import crop_masks, paste_masks
+
+    inst = -np.ones((120, 160), np.int64)
+    yy, xx = np.mgrid[:120, :160]
+    inst[(xx - 60) ** 2 / 30 ** 2 + (yy - 50) ** 2 / 20 ** 2 <= 1] = 3   # an ellipse
+    inst[(xx >= 120) & (yy >= 80)] = 5                                    # a block cut by the image's corner
+    boxes = np.array([[30.0, 30.0, 91.0, 71.0], [120.0, 80.0, 160.0, 120.0]])
+    masks = crop_masks(inst, np.array([3, 5]), boxes, 64, 1.2)
+    assert masks.shape == (2, 16, 16) and 0 <= masks.min() and masks.max() <= 1
+    assert abs(masks[0].sum() * (61 * 1.2 / 16) ** 2 - (inst == 3).sum()) < 0.02 * (inst == 3).sum()  # areas kept
+    pasted = paste_masks(masks, boxes, 1.2, (120, 160))
+    for m, k in zip(pasted, (3, 5)):
+        gt = inst == k
+        assert m.shape == gt.shape and (m & gt).sum() / (m | gt).sum() > 0.9
+    # a mask shifted by half the crop: the paste follows the box it is given
+    shifted = paste_masks(masks[:1], boxes[:1] + [40, 0, 40, 0], 1.2, (120, 160))[0]
+    assert (shifted & (inst == 3)).sum() < 0.3 * (inst == 3).sum()
+    assert paste_masks(np.zeros((0, 16, 16)), np.zeros((0, 4)), 1.2, (120, 160)) == []
+
+
+def test_mask_head_learns_the_visible_masks_of_rendered_objects(tmp_path):
+    """The mask chain, trained and applied: crops of jittered boxes of rendered objects with their
+    visible-mask targets (the training sampler's code), a mask-head classifier overfit on them,
+    exported to ONNX; ``classify_refine_masks`` + ``paste_masks`` on the same images give masks
+    that fit the rendered objects' visible masks far better than their boxes do; ``cosy detect``
+    writes them as segmentations (unless masks none) and ``cosy estimate`` reads them."""
+    import torch
+    import torch.nn.functional as F
+
+    from cosy_cli.detection import classifier_train as ct
+    from cosy_cli.detection.classifier import crop_masks, paste_masks, xyxy_continuous_to_xywh
+    from cosy_cli.detection.train import load_dataset_objects
+    from cosy_cli.io.masks import decode_segmentation
+
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    meshes, K, size = load_dataset_objects(SAMPLES, None, None)
+    conf = ct.resolve_conf(None, jitter=0.08, mask_head=True, soft_targets="none", background_per_image=0,
+                           reuse=1, crop=64)
+    sampler = ct.CropSampler(meshes, K, size, conf, IDS, 7, appearance=None)
+    try:
+        b = sampler.gen.batch(6)
+    finally:
+        sampler.close()
+    rng = np.random.default_rng(0)
+    cases, xs, ms = [], [], []
+    for img, boxes, inst, ids in zip(b["images"], b["boxes"], b["instance"], b["instance_ids"]):
+        if len(boxes) == 0:
+            continue
+        jit = ct._jitter(boxes, rng, 0.08)
+        cases.append((img, jit, inst, ids))
+        xs.append(crop_boxes(img, jit, 64, 1.2))
+        ms.append(crop_masks(inst, ids, jit, 64, 1.2))
+    x = torch.from_numpy(np.concatenate(xs).transpose(0, 3, 1, 2).copy()).float() / 255
+    m = torch.from_numpy(np.concatenate(ms))
+    assert len(x) >= 12 and m.shape[1:] == (16, 16)
+    torch.manual_seed(0)
+    net = build_network(ClassifierConfig(obj_ids=IDS, crop=64, widths=(16, 32, 48, 64), mask_head=True))
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(250):
+        loss = F.binary_cross_entropy_with_logits(net.forward_all(x)[2], m)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert np.mean(losses[-10:]) < 0.3 * np.mean(losses[:10])
+    with torch.no_grad():  # BatchNorm statistics of these crops (a tiny set: eval mode must fit too)
+        net.train()
+        for _ in range(20):
+            net.forward_all(x)
+    net.eval()
+    clf = OnnxClassifier(export_onnx(net, tmp_path / "mask.onnx"))
+    assert clf.has_mask_head and not clf.has_box_head
+    iou_mask, iou_box = [], []
+    for img, jit, inst, ids in cases:
+        probs, xyxy, masks = clf.classify_refine_masks(img, xyxy_continuous_to_xywh(jit), passes=1)
+        np.testing.assert_allclose(xyxy, jit)  # no box head: the boxes stay
+        assert probs.shape == (len(jit), 9) and masks.shape == (len(jit), 16, 16)
+        for k, pasted in enumerate(paste_masks(masks, xyxy, 1.2, img.shape[:2])):
+            gt = inst == ids[k]
+            box = np.zeros_like(gt)
+            x1, y1, x2, y2 = np.round(jit[k]).astype(int)
+            box[max(y1, 0):y2, max(x1, 0):x2] = True
+            iou_mask.append((pasted & gt).sum() / max((pasted | gt).sum(), 1))
+            iou_box.append((box & gt).sum() / max((box | gt).sum(), 1))
+    assert np.mean(iou_mask) > 0.75 and np.mean(iou_mask) > np.mean(iou_box) + 0.1, (np.mean(iou_mask), np.mean(iou_box))
+
+    # cosy detect: a segmentation per detection from the mask head, none with masks none
+    for masks_setting in ("auto", "none"):
+        out = tmp_path / f"d_{masks_setting}.json"
+        stage.main({"min_score": 0.1, "masks": masks_setting}, SAMPLES, "test", out, scene_ids=[1],
+                   detector=TwoBoxDetector(), classifier=clf, progress=False)
+        dets = bop.read_detections(out)
+        meta = json.loads((tmp_path / f"d_{masks_setting}.meta.json").read_text())
+        assert meta["classifier"]["masks"] is (masks_setting == "auto")
+        segs = dets["segmentation"].tolist()
+        if masks_setting == "none":
+            assert all(s is None for s in segs)
+            continue
+        assert len(segs) and all(isinstance(s, dict) for s in segs)
+        for s, row in zip(segs, dets.itertuples()):
+            mk = decode_segmentation(s, (480, 640))
+            ys, xs_ = np.nonzero(mk)
+            if len(ys):  # within the crop square of the detection's box
+                side = 1.2 * max(row.w, row.h) + 2
+                assert abs((xs_.mean()) - (row.x + row.w / 2)) < side / 2 and abs(ys.mean() - (row.y + row.h / 2)) < side / 2
+    # ... which cosy estimate reads as masks
+    r = _run(["estimate", "--dataset", SAMPLES, "--split", "test", "--scene-id", 1, "--detections",
+              tmp_path / "d_auto.json", "--out", tmp_path / "est"])
+    assert r.exit_code == 0, r.output
+    assert "have a segmentation" in r.output

@@ -38,18 +38,20 @@ from ..errors import CosyError
 METADATA_KEY = "cosy_classifier"
 FILL = 127  # grey where a crop leaves the image
 BOX_DELTA_SCALE = 0.1  # box head outputs: edge offsets in units of BOX_DELTA_SCALE x the crop's side
+MASK_STRIDE = 4  # mask head output: (crop / MASK_STRIDE)^2 cells over the crop
 
 
 # ---------------------------------------------------------------------------------- crops
-def crop_boxes(rgb: np.ndarray, xyxy: np.ndarray, size: int, margin: float) -> np.ndarray:
+def crop_boxes(rgb: np.ndarray, xyxy: np.ndarray, size: int, margin: float, fill: int = FILL) -> np.ndarray:
     """(N, size, size, 3) uint8 crops of an (H, W, 3) uint8 image around boxes ``xyxy`` (N, 4)
     in continuous pixel coordinates ([x1, x2) x [y1, y2), pixel u covers [u, u + 1)): a square
     of side ``margin`` x max(w, h) (at least 8 px) centred on the box, resampled with bilinear
-    interpolation (area-like pre-blur when shrinking by more than 2), outside filled grey."""
+    interpolation (area-like pre-blur when shrinking by more than 2), outside filled with ``fill``
+    (grey). An (H, W) image gives (N, size, size) crops."""
     import cv2
 
     xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
-    out = np.empty((len(xyxy), size, size, 3), np.uint8)
+    out = np.empty((len(xyxy), size, size) + tuple(rgb.shape[2:]), rgb.dtype)
     cx, cy = (xyxy[:, 0] + xyxy[:, 2]) / 2, (xyxy[:, 1] + xyxy[:, 3]) / 2
     side = crop_sides(xyxy, margin)
     for i in range(len(xyxy)):
@@ -70,7 +72,56 @@ def crop_boxes(rgb: np.ndarray, xyxy: np.ndarray, size: int, margin: float) -> n
         ty = size / 2 - scale * ccy + 0.5 * scale - 0.5
         M = np.array([[scale, 0.0, tx], [0.0, scale, ty]])
         out[i] = cv2.warpAffine(src, M, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                borderValue=(FILL, FILL, FILL))
+                                borderValue=(fill, fill, fill))
+    return out
+
+
+def crop_masks(instance: np.ndarray, ids: np.ndarray, xyxy: np.ndarray, crop: int, margin: float) -> np.ndarray:
+    """(N, m, m) float32 mask head targets, m = ``crop`` // MASK_STRIDE: for each box ``xyxy[j]``
+    (N, 4) continuous px, the share of each cell of its crop (the square of :func:`crop_boxes`)
+    covered by instance ``ids[j]`` of the (H, W) int ``instance`` map (its visible mask)."""
+    import cv2
+
+    xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    m = crop // MASK_STRIDE
+    out = np.zeros((len(xyxy), m, m), np.float32)
+    for j in range(len(xyxy)):
+        mask = (instance == int(ids[j])).astype(np.uint8) * 255
+        full = crop_boxes(mask, xyxy[j:j + 1], crop, margin, fill=0)[0]
+        out[j] = cv2.resize(full, (m, m), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+    return out
+
+
+def paste_masks(masks: np.ndarray, xyxy: np.ndarray, margin: float, shape: tuple[int, int],
+                threshold: float = 0.5) -> list:
+    """The image masks of mask head outputs: ``masks`` (N, m, m) probabilities over the crops of
+    boxes ``xyxy`` (N, 4) continuous px (the squares of :func:`crop_boxes`), resampled bilinearly
+    into an (H, W) = ``shape`` image and thresholded at ``threshold``. Returns N (H, W) bool masks
+    (outside the crop square: False)."""
+    import cv2
+
+    H, W = int(shape[0]), int(shape[1])
+    xyxy = np.asarray(xyxy, dtype=np.float64).reshape(-1, 4)
+    if not len(xyxy):
+        return []
+    masks = np.asarray(masks, np.float32)
+    m = masks.shape[-1]
+    side = crop_sides(xyxy, margin)
+    out = []
+    for j in range(len(xyxy)):
+        a = side[j] / m  # image px per mask cell
+        x0 = (xyxy[j, 0] + xyxy[j, 2]) / 2 - side[j] / 2  # the crop square's corner (continuous px)
+        y0 = (xyxy[j, 1] + xyxy[j, 3]) / 2 - side[j] / 2
+        rx0, ry0 = max(0, int(np.floor(x0))), max(0, int(np.floor(y0)))
+        rx1, ry1 = min(W, int(np.ceil(x0 + side[j]))), min(H, int(np.ceil(y0 + side[j])))
+        full = np.zeros((H, W), bool)
+        if rx1 > rx0 and ry1 > ry0:
+            # destination pixel index u (centre u + 0.5) -> mask index (u + 0.5 - x0) / a - 0.5
+            M = np.array([[1 / a, 0.0, (rx0 + 0.5 - x0) / a - 0.5], [0.0, 1 / a, (ry0 + 0.5 - y0) / a - 0.5]])
+            region = cv2.warpAffine(masks[j], M, (rx1 - rx0, ry1 - ry0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            full[ry0:ry1, rx0:rx1] = region >= threshold
+        out.append(full)
     return out
 
 
@@ -123,7 +174,10 @@ class ClassifierConfig:
     + stages of ``widths`` = its 5 channel widths, ``depth`` extra convs per stage; it can be
     warm-started from an exported detector), then the average and the max over the cells of the
     last two stages, concatenated, linear (max pooling keeps a small local detail such as a
-    notch). box_head: a second linear output of 4 box edge offsets (:func:`box_deltas`)."""
+    notch). box_head: a second linear output of 4 box edge offsets (:func:`box_deltas`).
+    mask_head: a third output, the visible mask of the object the box is about over the crop
+    ((crop / MASK_STRIDE)^2 logits; a small top-down decoder over the stride 4, 8 and 16 maps;
+    class-agnostic: the object centred in the crop); crop a multiple of 16."""
 
     obj_ids: list = field(default_factory=list)
     crop: int = 112
@@ -132,6 +186,7 @@ class ClassifierConfig:
     arch: str = "plain"
     depth: tuple = (0, 1, 2, 2)
     box_head: bool = False
+    mask_head: bool = False
 
     def __post_init__(self):
         self.obj_ids = [int(o) for o in self.obj_ids]
@@ -139,6 +194,9 @@ class ClassifierConfig:
         self.widths = tuple(int(w) for w in self.widths)
         self.depth = tuple(int(d) for d in self.depth)
         self.box_head = bool(self.box_head)
+        self.mask_head = bool(self.mask_head)
+        if self.mask_head and self.crop % 16:
+            raise ValueError(f"a mask head needs a crop side that is a multiple of 16, got {self.crop}")
         if self.arch not in ("plain", "detector"):
             raise ValueError(f"arch must be plain or detector, got {self.arch!r}")
         if self.arch == "detector" and (len(self.widths) != 5 or len(self.depth) != 4):
@@ -155,13 +213,15 @@ class ClassifierConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ClassifierConfig":
-        return cls(**{k: d[k] for k in ("obj_ids", "crop", "margin", "widths", "arch", "depth", "box_head") if k in d})
+        return cls(**{k: d[k] for k in ("obj_ids", "crop", "margin", "widths", "arch", "depth", "box_head", "mask_head")
+                      if k in d})
 
 
 def build_network(config: ClassifierConfig):
     """The torch classifier (conv + BN + ReLU stages, global average pool, linear) whose
     forward takes (B, 3, S, S) float32 RGB in [0, 1] and returns logits (B, C + 1);
-    ``forward_all`` also the box head's deltas (B, 4) (zeros without a box head)."""
+    ``forward_all`` also the box head's deltas (B, 4) (zeros without a box head) and the mask
+    head's logits (B, S / 4, S / 4) (None without one)."""
     import torch
     from torch import nn
 
@@ -187,28 +247,60 @@ def build_network(config: ClassifierConfig):
                 self.box = nn.Linear(n_feat, 4)
                 nn.init.zeros_(self.box.weight)
                 nn.init.zeros_(self.box.bias)
+            if cfg.mask_head:  # top-down over the stride 16, 8 and 4 maps (widths[3], [2], [1] in both arches)
+                k = 32
+                self.mask_lateral = nn.ModuleList([nn.Conv2d(cfg.widths[i], k, 1) for i in (1, 2, 3)])
+                self.mask_smooth = nn.ModuleList([cbr(k, k), cbr(k, k)])
+                self.mask_out = nn.Conv2d(k, 1, 1)
             self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
             self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
 
-        def features_of(self, x):
+        def maps(self, x):
+            """The feature maps at strides 4, 8, 16 and the last (16 plain, 32 detector)."""
             x = (x - self.mean) / self.std
+            out = []
             if self.config.arch == "plain":
-                return self.features(x).mean((2, 3))
+                for i in range(0, len(self.features), 2):
+                    x = self.features[i + 1](self.features[i](x))
+                    out.append(x)
+                return out[1:] + [out[-1]]
             x = self.stem(x)
-            feats = []
             for st in self.stages:
                 x = st(x)
-                feats.append(x)
-            a, b = feats[-2], feats[-1]
+                out.append(x)
+            return out
+
+        def pooled(self, maps):
+            if self.config.arch == "plain":
+                return maps[-1].mean((2, 3))
+            a, b = maps[-2], maps[-1]
             return torch.cat([a.mean((2, 3)), a.amax((2, 3)), b.mean((2, 3)), b.amax((2, 3))], 1)
+
+        def mask_logits(self, maps):
+            """(B, S / 4, S / 4) logits of the mask head."""
+            import torch.nn.functional as F
+
+            lat = self.mask_lateral
+            x = lat[2](maps[2])
+            for level, smooth in ((1, self.mask_smooth[0]), (0, self.mask_smooth[1])):
+                f = lat[level](maps[level])
+                x = smooth(F.interpolate(x, size=f.shape[-2:], mode="bilinear", align_corners=False) + f)
+            return self.mask_out(x)[:, 0]
+
+        def features_of(self, x):
+            return self.pooled(self.maps(x))
 
         def forward(self, x):
             return self.fc(self.dropout(self.features_of(x)))
 
         def forward_all(self, x):
-            f = self.features_of(x)
+            """(logits (B, C + 1), box deltas (B, 4): zeros without a box head, mask logits
+            (B, S / 4, S / 4) or None without a mask head)."""
+            maps = self.maps(x)
+            f = self.pooled(maps)
             deltas = self.box(f) if self.config.box_head else f.new_zeros((len(f), 4))
-            return self.fc(self.dropout(f)), deltas
+            masks = self.mask_logits(maps) if self.config.mask_head else None
+            return self.fc(self.dropout(f)), deltas, masks
 
         def checkpoint(self) -> dict:
             return {"config": self.config.to_dict(), "state_dict": self.state_dict()}
@@ -255,7 +347,7 @@ def network_from_checkpoint(ck: dict):
 def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset: int = 17) -> Path:
     """Write ``net`` as one ONNX file: input ``crops`` (B, 3, S, S) float32 RGB [0, 1] (dynamic
     batch), output ``probs`` (B, C + 1) softmax and, with a box head, ``deltas`` (B, 4)
-    (:func:`box_deltas`); metadata ``cosy_classifier`` (config JSON, kind "classifier")."""
+    (:func:`box_deltas`), with a mask head ``masks`` (B, S / 4, S / 4) probabilities; metadata ``cosy_classifier`` (config JSON, kind "classifier")."""
     import copy
     import warnings
 
@@ -270,13 +362,17 @@ def export_onnx(net, path: str | Path, extra_metadata: dict | None = None, opset
             self.m = m
 
         def forward(self, x):
-            if self.m.config.box_head:
-                logits, deltas = self.m.forward_all(x)
-                return torch.softmax(logits, dim=1), deltas
+            c = self.m.config
+            if c.box_head or c.mask_head:
+                logits, deltas, masks = self.m.forward_all(x)
+                out = (torch.softmax(logits, dim=1),)
+                out += (deltas,) if c.box_head else ()
+                out += (torch.sigmoid(masks),) if c.mask_head else ()
+                return out
             return torch.softmax(self.m(x), dim=1)
 
     cfg = net.config
-    outputs = ["probs", "deltas"] if cfg.box_head else ["probs"]
+    outputs = ["probs"] + (["deltas"] if cfg.box_head else []) + (["masks"] if cfg.mask_head else [])
     wrapper = Softmax(copy.deepcopy(net).cpu().float().eval())
     dummy = torch.rand(2, 3, cfg.crop, cfg.crop)
     meta = dict(cfg.to_dict(), kind="classifier", classes=[str(o) for o in cfg.obj_ids] + ["background"],
@@ -329,23 +425,38 @@ class OnnxClassifier:
         outputs = [o.name for o in self.session.get_outputs()]
         if self.config.box_head and "deltas" not in outputs:
             raise CosyError("classifier metadata names a box head but the graph has no 'deltas' output", path=path)
-        self._outputs = ["probs", "deltas"] if self.config.box_head else [outputs[0]]
+        if self.config.mask_head and "masks" not in outputs:
+            raise CosyError("classifier metadata names a mask head but the graph has no 'masks' output", path=path)
+        self._outputs = ((["probs"] if "probs" in outputs else [outputs[0]]) + (["deltas"] if self.config.box_head else [])
+                         + (["masks"] if self.config.mask_head else []))
 
     @property
     def has_box_head(self) -> bool:
         return self.config.box_head
 
+    @property
+    def has_mask_head(self) -> bool:
+        return self.config.mask_head
+
     def __repr__(self) -> str:
         return f"OnnxClassifier({str(self.path)!r}, objects={self.obj_ids}, crop={self.config.crop})"
 
+    def _run_all(self, crops: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(probabilities (N, C + 1), box deltas (N, 4): zeros without a box head, masks (N, S / 4,
+        S / 4) float32 probabilities over the crops or None without a mask head) of uint8 crops (N, S, S, 3)."""
+        m = self.config.crop // MASK_STRIDE
+        if len(crops) == 0:
+            return (np.zeros((0, len(self.obj_ids) + 1)), np.zeros((0, 4)),
+                    np.zeros((0, m, m), np.float32) if self.config.mask_head else None)
+        x = np.ascontiguousarray(crops.transpose(0, 3, 1, 2), dtype=np.float32) * np.float32(1 / 255.0)
+        out = dict(zip(self._outputs, self.session.run(self._outputs, {self._input: x})))
+        deltas = out["deltas"].astype(np.float64) if "deltas" in out else np.zeros((len(crops), 4))
+        masks = out["masks"].astype(np.float32) if "masks" in out else None
+        return out[self._outputs[0]].astype(np.float64), deltas, masks
+
     def _run(self, crops: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(probabilities (N, C + 1), box deltas (N, 4): zeros without a box head) of uint8 crops (N, S, S, 3)."""
-        if len(crops) == 0:
-            return np.zeros((0, len(self.obj_ids) + 1)), np.zeros((0, 4))
-        x = np.ascontiguousarray(crops.transpose(0, 3, 1, 2), dtype=np.float32) * np.float32(1 / 255.0)
-        out = self.session.run(self._outputs, {self._input: x})
-        deltas = out[1].astype(np.float64) if len(out) > 1 else np.zeros((len(crops), 4))
-        return out[0].astype(np.float64), deltas
+        return self._run_all(crops)[:2]
 
     def classify_crops(self, crops: np.ndarray) -> np.ndarray:
         """(N, C + 1) probabilities of uint8 crops (N, S, S, 3)."""
@@ -362,14 +473,23 @@ class OnnxClassifier:
         refined boxes when there is one more classification than moves: passes moves, then one
         look at the final boxes). Without a box head or with ``passes`` 0: :meth:`classify` and
         the boxes as given."""
+        probs, xyxy, _ = self.classify_refine_masks(rgb, boxes_xywh, passes)
+        return probs, xyxy_continuous_to_xywh(xyxy)
+
+    def classify_refine_masks(self, rgb: np.ndarray, boxes_xywh: np.ndarray, passes: int = 1
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """As :meth:`classify_refine`, but returns (probabilities, the final boxes (N, 4) as
+        continuous [x1, y1, x2, y2] px, the mask head's (N, S / 4, S / 4) probabilities over the
+        crops of those boxes or None without a mask head): :func:`paste_masks` puts them into
+        the image."""
         rgb = np.asarray(rgb)
         xyxy = xywh_to_xyxy_continuous(boxes_xywh)
         c = self.config
-        probs, deltas = self._run(crop_boxes(rgb, xyxy, c.crop, c.margin))
+        probs, deltas, masks = self._run_all(crop_boxes(rgb, xyxy, c.crop, c.margin))
         for _ in range(max(int(passes), 0) if c.box_head else 0):
             xyxy = apply_box_deltas(xyxy, deltas, c.margin)
-            probs, deltas = self._run(crop_boxes(rgb, xyxy, c.crop, c.margin))
-        return probs, xyxy_continuous_to_xywh(xyxy)
+            probs, deltas, masks = self._run_all(crop_boxes(rgb, xyxy, c.crop, c.margin))
+        return probs, xyxy, masks
 
 
 # ---------------------------------------------------------------------------------- rescoring
@@ -430,4 +550,5 @@ def rescore(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, probs: np
 
 __all__ = ["ClassifierConfig", "build_network", "network_from_checkpoint", "export_onnx", "OnnxClassifier",
            "crop_boxes", "crop_sides", "box_deltas", "apply_box_deltas", "xywh_to_xyxy_continuous",
-           "xyxy_continuous_to_xywh", "rescore", "RULE_DEFAULTS", "METADATA_KEY", "BOX_DELTA_SCALE"]
+           "xyxy_continuous_to_xywh", "rescore", "RULE_DEFAULTS", "METADATA_KEY", "BOX_DELTA_SCALE", "MASK_STRIDE",
+           "crop_masks", "paste_masks"]

@@ -11,7 +11,10 @@ edge moved by N(0, ``jitter`` x box size), what a detector's box error looks lik
 weights. Adam, warm-up + cosine, EMA of the weights (exported). With ``box_head`` (the ``real``
 preset), a second output learns where the object's visible box lies from the jittered crop
 (:func:`~cosy_cli.detection.classifier.box_deltas`): smooth-L1 loss (beta 0.1, in units of 0.1 x
-the crop's side) on the object crops, weighted by ``box_weight``.
+the crop's side) on the object crops, weighted by ``box_weight``. With ``mask_head`` (the ``real``
+preset), a third output learns the visible mask of the object the crop is about
+(:func:`~cosy_cli.detection.classifier.crop_masks`: the share of each cell of the crop the
+rendered object covers): binary cross-entropy on the object crops, weighted by ``mask_weight``.
 
 Presets: ``default`` (tuned for the sample objects: their look-alike pairs and weights, which
 runs on other objects drop) and ``real`` (onboarding for real photographs from a models folder
@@ -51,12 +54,12 @@ from ..conf import merge_conf
 from ..errors import CosyError
 from ..objects.database import diameter_of
 from ..training import loop
-from .classifier import ClassifierConfig, box_deltas, crop_boxes
+from .classifier import MASK_STRIDE, ClassifierConfig, box_deltas, crop_boxes, crop_masks
 from .train import (
     APPEARANCE_KEYS, CONFS as DETECTOR_CONFS, appearance_card, appearance_kwargs, check_appearance, named_objects,
 )
 
-LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "accuracy", "crops_per_s", "loss_box"]
+LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "accuracy", "crops_per_s", "loss_box", "loss_mask"]
 
 DEFAULT_CONF = {
     "kind": "classifier",
@@ -76,6 +79,8 @@ DEFAULT_CONF = {
     "jitter": 0.07,
     "box_head": False,            # also learn to move the box onto the object (detect: refine_boxes)
     "box_weight": 1.0,            # weight of the box loss against the cross-entropy
+    "mask_head": False,           # also learn the object's visible mask in the crop (detect: segmentations)
+    "mask_weight": 1.0,           # weight of the mask loss against the cross-entropy
     "reuse": 2,
     "background_per_image": 1,
     "min_visib": 0.15,
@@ -106,7 +111,9 @@ CONFS = {
                  confusable=None, p_pair=0.0, init="shipped", iterations=3000, lr=1e-3, warmup=100,
                  # a detector onboarded from meshes misplaces real objects' boxes (on odd real LM-O scenes its
                  # box sizes were 0.92-1.38 x the GT's, 10th-90th percentile): wider jitter, and a box head
-                 box_head=True, jitter=0.12),
+                 box_head=True, jitter=0.12,
+                 # the visible mask of each detection (cosy estimate uses a detection's mask in its verification)
+                 mask_head=True),
 }
 
 
@@ -117,9 +124,10 @@ def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
         for k in ("crop", "iterations", "batch_size", "warmup", "reuse", "background_per_image", "max_objects",
                   "threads", "seed", "workers", "checkpoint_every", "log_every"):
             c[k] = int(c[k])
-        for k in ("margin", "lr", "ema", "jitter", "min_visib", "p_pair", "soft_tol_mm", "box_weight"):
+        for k in ("margin", "lr", "ema", "jitter", "min_visib", "p_pair", "soft_tol_mm", "box_weight", "mask_weight"):
             c[k] = float(c[k])
         c["box_head"] = bool(c["box_head"])
+        c["mask_head"] = bool(c["mask_head"])
         c["soft_targets"] = str(c["soft_targets"] or "none").lower()
         c["soft_px"] = [float(v) for v in c["soft_px"]]
         c["widths"] = [int(w) for w in c["widths"]]
@@ -134,10 +142,11 @@ def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
             or c["reuse"] < 1 or c["threads"] < 1 or not 0 <= c["ema"] < 1 or c["arch"] not in ("plain", "detector")
             or len(c["widths"]) != (4 if c["arch"] == "plain" else 5)
             or c["soft_targets"] not in ("lookalike", "none") or len(c["soft_px"]) != 2
-            or not 0 <= c["soft_px"][0] < c["soft_px"][1] or c["soft_tol_mm"] <= 0):
+            or not 0 <= c["soft_px"][0] < c["soft_px"][1] or c["soft_tol_mm"] <= 0
+            or (c["mask_head"] and c["crop"] % 16)):
         raise CosyError("classifier training settings out of range (crop >= 16, margin >= 1, arch plain (4 widths) "
                         "or detector (5 widths), soft_targets lookalike | none, soft_px [lo, hi] with 0 <= lo < hi, "
-                        "soft_tol_mm > 0, ...)")
+                        "soft_tol_mm > 0, a mask head's crop a multiple of 16, ...)")
     check_appearance(c)
     if c["init"] == "shipped":  # the shipped detector's backbone
         from ..shipped import shipped
@@ -294,6 +303,8 @@ class CropSampler:
         self.pool_y: list = []
         self.pool_t: list = []
         self.pool_d: list = []  # box head targets (box_deltas; zeros for background crops)
+        self.pool_m: list = []  # mask head targets (crop_masks; zeros for background crops), with mask_head
+        self.mask_side = int(conf["crop"]) // MASK_STRIDE
         self.soft_crops = 0  # crops whose target is not one-hot (for the log)
 
     def _fill(self) -> None:
@@ -301,7 +312,9 @@ class CropSampler:
         b = self.gen.batch(4)
         C = len(self.obj_ids)
         probe_px = b.get("probe_px", [None] * len(b["images"]))
-        for img, boxes, labels, ppx in zip(b["images"], b["boxes"], b["labels"], probe_px):
+        masks = bool(c.get("mask_head"))
+        ms = self.mask_side
+        for i, (img, boxes, labels, ppx) in enumerate(zip(b["images"], b["boxes"], b["labels"], probe_px)):
             targets = soft_target_rows(labels, ppx, self.partners, self.obj_ids, C + 1,
                                        c.get("soft_px", (2.0, 20.0)))
             for _ in range(c["reuse"]):
@@ -311,6 +324,8 @@ class CropSampler:
                     self.pool_y.append(labels)
                     self.pool_t.append(targets)
                     self.pool_d.append(box_deltas(jittered, boxes, c["margin"]).astype(np.float32))
+                    self.pool_m.append(crop_masks(b["instance"][i], b["instance_ids"][i], jittered, c["crop"],
+                                                  c["margin"]) if masks else np.zeros((len(boxes), 0, 0), np.float32))
             bg = _background_boxes(self.rng, boxes, c["background_per_image"], *self.size)
             if len(bg):
                 self.pool_x.append(crop_boxes(img, bg, c["crop"], c["margin"]))
@@ -319,20 +334,27 @@ class CropSampler:
                 t[:, C] = 1.0
                 self.pool_t.append(t)
                 self.pool_d.append(np.zeros((len(bg), 4), np.float32))
+                self.pool_m.append(np.zeros((len(bg), ms, ms) if masks else (len(bg), 0, 0), np.float32))
 
     def batch_all(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(crops (n, S, S, 3) uint8, class indices (n,), targets (n, C + 1) float32, box head
         targets (n, 4) float32: :func:`~cosy_cli.detection.classifier.box_deltas` from the crop's
         box to the object's visible box, zeros for background crops)."""
+        return self.batch_masks(n)[:4]
+
+    def batch_masks(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`batch_all` and the mask head targets (n, S / 4, S / 4) float32 (with ``mask_head``;
+        else (n, 0, 0)): :func:`~cosy_cli.detection.classifier.crop_masks`, zeros for background crops."""
         while sum(len(y) for y in self.pool_y) < n:
             self._fill()
         x, y, t = np.concatenate(self.pool_x), np.concatenate(self.pool_y), np.concatenate(self.pool_t)
-        d = np.concatenate(self.pool_d)
+        d, m = np.concatenate(self.pool_d), np.concatenate(self.pool_m)
         perm = self.rng.permutation(len(y))
         take, rest = perm[:n], perm[n:]
         self.pool_x, self.pool_y, self.pool_t, self.pool_d = [x[rest]], [y[rest]], [t[rest]], [d[rest]]
+        self.pool_m = [m[rest]]
         self.soft_crops += int((t[take].max(1) < 1.0).sum())
-        return x[take], y[take], t[take], d[take]
+        return x[take], y[take], t[take], d[take], m[take]
 
     def batch_targets(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(crops (n, S, S, 3) uint8, class indices (n,), targets (n, C + 1) float32)."""
@@ -379,7 +401,7 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
             for k in ("soft_targets", "soft_tol_mm", "soft_px"):
                 if k not in old:
                     conf.pop(k, None)
-            for k in ("box_head", "box_weight"):  # runs recorded before the box head: none
+            for k in ("box_head", "box_weight", "mask_head", "mask_weight"):  # runs recorded before: none
                 if k not in old:
                     conf[k] = DEFAULT_CONF[k]
             if "soft_targets" not in old:
@@ -415,11 +437,13 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
                 raise CosyError("init: not a classifier checkpoint (no EMA weights)", path=ip)
     ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite,
                           resumable=loop.RESUMABLE_CHANGES | {"threads", "init"},
-                          added={k: DEFAULT_CONF[k] for k in (*APPEARANCE_KEYS, "box_head", "box_weight")})
+                          added={k: DEFAULT_CONF[k] for k in (*APPEARANCE_KEYS, "box_head", "box_weight", "mask_head",
+                                                              "mask_weight")})
     device = loop.select_device(conf, log)
     torch.set_num_threads(conf["threads"])
     cfg = ClassifierConfig(obj_ids=obj_ids, crop=conf["crop"], margin=conf["margin"], widths=tuple(conf["widths"]),
-                           arch=conf["arch"], depth=tuple(conf["depth"]), box_head=conf["box_head"])
+                           arch=conf["arch"], depth=tuple(conf["depth"]), box_head=conf["box_head"],
+                           mask_head=conf["mask_head"])
     model = build_network(cfg)
     sampler = CropSampler(meshes, K, image_size, conf, obj_ids, np.random.SeedSequence([conf["seed"], step_of(ckpt)]),
                           step_of(ckpt), appearance=appearance_kwargs(conf, log, "train classifier"))
@@ -430,16 +454,18 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
     if ckpt is None and init_ckpt is not None:
         from .classifier import ClassifierConfig as _CC
 
-        if (dict(_CC.from_dict(init_ckpt["ema"]["config"]).to_dict(), box_head=cfg.box_head) != cfg.to_dict()
-                or (_CC.from_dict(init_ckpt["ema"]["config"]).box_head and not cfg.box_head)):
+        old_cfg = _CC.from_dict(init_ckpt["ema"]["config"])
+        if (dict(old_cfg.to_dict(), box_head=cfg.box_head, mask_head=cfg.mask_head) != cfg.to_dict()
+                or (old_cfg.box_head and not cfg.box_head) or (old_cfg.mask_head and not cfg.mask_head)):
             raise CosyError("init: the classifier checkpoint's network differs from this run's (classes, crop, "
-                            "architecture, box head)", path=conf["init"])
+                            "architecture, box head, mask head)", path=conf["init"])
         missing, unexpected = model.load_state_dict(init_ckpt["ema"]["state_dict"], strict=False)
-        if unexpected or set(missing) - {"box.weight", "box.bias"}:
+        new_heads = {k for k in missing if k.startswith(("box.", "mask_"))}
+        if unexpected or set(missing) - new_heads:
             raise CosyError(f"init: the checkpoint's weights do not fit ({sorted(missing)[:3]} missing, "
                             f"{sorted(unexpected)[:3]} unexpected)", path=conf["init"])
         log(f"train classifier: fine-tuning from the EMA weights of {conf['init']} (step {init_ckpt.get('step')})"
-            + ("; the box head starts from zero offsets" if missing else ""))
+            + ("; new heads start afresh: " + ", ".join(sorted({k.split(".")[0] for k in new_heads})) if new_heads else ""))
     elif ckpt is None and conf["init"]:
         if conf["arch"] != "detector":
             raise CosyError("init (a detector's backbone) needs arch detector")
@@ -468,22 +494,28 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
     n_obj = len(obj_ids)
 
     def train_step(step: int):
-        x, y, t, d = sampler.batch_all(conf["batch_size"])
+        x, y, t, d, m = sampler.batch_masks(conf["batch_size"])
         xt = torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2))).to(device).float().div_(255.0)
         yt = torch.from_numpy(y).to(device)
         tt = torch.from_numpy(t).to(device)
         lr = loop.learning_rate(conf, step)
         for g in opt.param_groups:
             g["lr"] = lr
-        logits, deltas = model.forward_all(xt)
+        logits, deltas, mask_logits = model.forward_all(xt)
         loss = F.cross_entropy(logits, tt, label_smoothing=0.05)  # one-hot rows: the hard-label loss
         box_loss = torch.zeros((), device=device)
+        mask_loss = torch.zeros((), device=device)
+        obj = yt < n_obj  # object crops (the background has no box and no mask)
         if conf["box_head"]:
-            obj = yt < n_obj  # object crops (the background has no box)
             if bool(obj.any()):
                 dt = torch.from_numpy(d).to(device)
                 box_loss = F.smooth_l1_loss(deltas[obj], dt[obj], beta=0.1)
             loss = loss + conf["box_weight"] * box_loss
+        if conf["mask_head"]:
+            if bool(obj.any()):
+                mt = torch.from_numpy(m).to(device)
+                mask_loss = F.binary_cross_entropy_with_logits(mask_logits[obj], mt[obj])
+            loss = loss + conf["mask_weight"] * mask_loss
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -495,14 +527,16 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
             for eb, mb in zip(ema.buffers(), model.buffers()):
                 eb.copy_(mb)
             acc = float((logits.argmax(1) == yt).float().mean())
-        return (lr, {"total": float(loss.detach()), "acc": acc, "box": float(box_loss.detach())},
-                {"acc": f"{acc:.2f}", **({"box": f"{float(box_loss.detach()):.3f}"} if conf["box_head"] else {})})
+        return (lr, {"total": float(loss.detach()), "acc": acc, "box": float(box_loss.detach()),
+                     "mask": float(mask_loss.detach())},
+                {"acc": f"{acc:.2f}", **({"box": f"{float(box_loss.detach()):.3f}"} if conf["box_head"] else {}),
+                 **({"mask": f"{float(mask_loss.detach()):.3f}"} if conf["mask_head"] else {})})
 
     def log_row(means: loop.Means):
-        m = means.means(("total", "acc", "box"))
+        m = means.means(("total", "acc", "box", "mask"))
         return {"total": m["total"], "acc": m["acc"]}, {"loss_total": m["total"], "accuracy": m["acc"],
                                                        "crops_per_s": means.rate(conf["batch_size"]),
-                                                       "loss_box": m["box"]}
+                                                       "loss_box": m["box"], "loss_mask": m["mask"]}
 
     return loop.run_loop(
         out, conf, record, step=step, samples=samples, loss=last, train_step=train_step, log_row=log_row,
@@ -540,6 +574,8 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
          f"{list(cfg.depth)}), average and max over the cells of the last two stages, linear; ")
         + (f"a box head (linear: offsets of the 4 box edges, in units of {BOX_DELTA_SCALE:g} x the crop's side; "
            "output `deltas`); " if cfg.box_head else "")
+        + (f"a mask head (the object's visible mask over the crop, {cfg.crop // MASK_STRIDE} x "
+           f"{cfg.crop // MASK_STRIDE} probabilities; output `masks`); " if cfg.mask_head else "")
         + f"{n / 1e3:.0f} k parameters",
         "- training data: crops of on-the-fly domain-randomised renders of those models (no real image)"
         + (f"; own mesh colours with probability {c['p_mesh_colors']:g}" if c.get("p_mesh_colors") else "")

@@ -343,7 +343,9 @@ class DetectionSampleGenerator(RendererOwner):
         """B images: {"images": (B, H, W, 3) uint8, "boxes": [ (n_b, 4) xyxy input px ],
         "labels": [ (n_b,) class indices ], "ignore_boxes", "ignore_labels": the same for
         barely visible instances, "visib_fract": [ (n_b,) ], "T_cam_obj": [ (n_b, 4, 4) mm ] of the
-        kept instances, "K": (B, 3, 3) the images' intrinsics (input px)}."""
+        kept instances, "K": (B, 3, 3) the images' intrinsics (input px), "instance": (B, H, W)
+        int instance map (-1: nothing drawn), "instance_ids": [ (n_b,) ] the values of the kept
+        instances in it (the visible mask of box j of image b is instance[b] == instance_ids[b][j])}."""
         rng = self.rng
         w, h = self.input_size
         ids_all, T_all, tile_all, Ks, is_table = [], [], [], [], []
@@ -409,7 +411,7 @@ class DetectionSampleGenerator(RendererOwner):
         full_px[objs] = sil.reshape(len(objs), -1).sum(1) * (w * h) / (hw * hh)
 
         out = {"boxes": [], "labels": [], "ignore_boxes": [], "ignore_labels": [], "visib_fract": [], "T_cam_obj": [],
-               "K": Ks}
+               "K": Ks, "instance": inst, "instance_ids": []}
         if probes:
             out["probe_px"] = []
         class_of = {int(o): k for k, o in enumerate(self.obj_ids)}
@@ -441,6 +443,7 @@ class DetectionSampleGenerator(RendererOwner):
             out["ignore_labels"].append(np.array(ign_l, np.int64))
             out["visib_fract"].append(np.array(vis))
             out["T_cam_obj"].append(T[np.array(kept, np.int64)].reshape(len(kept), 4, 4))
+            out["instance_ids"].append(np.array(kept, np.int64))
             if probes:
                 out["probe_px"].append(probe_px[np.array(kept, np.int64)].reshape(len(kept), n_sets))
         if self.p_photo_texture > 0:  # drawn only then: the stream of earlier runs stays as it was

@@ -68,6 +68,8 @@ CONFS = {
         "label_ratio": RULE_DEFAULTS["label_ratio"],  # classifier: emit labels with p >= this x the best p
         "background": RULE_DEFAULTS["background"],    # classifier: objectness x (1 - p_background) ** this
         "refine_boxes": 1,       # classifier with a box head: passes that move each box onto its object (0: off)
+        "masks": "auto",         # classifier with a mask head: auto = each detection gets its segmentation | none
+        "mask_threshold": 0.5,   # a pixel belongs to the mask when the mask head's probability is at least this
     },
 }
 
@@ -84,6 +86,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["label_mix"], c["label_ratio"] = float(c["label_mix"]), float(c["label_ratio"])
         c["background"] = float(c["background"])
         c["refine_boxes"] = int(c["refine_boxes"])
+        c["masks"] = "none" if c["masks"] in (None, False) else str(c["masks"]).lower()
+        c["mask_threshold"] = float(c["mask_threshold"])
         c["classifier"] = "none" if c["classifier"] in (None, False) else str(c["classifier"])
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None
@@ -91,6 +95,9 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
             and c["max_per_image"] >= 1 and c["max_per_object"] >= 0):
         raise CosyError("detect settings out of range (min_score, min_visib_fract in [0, 1], nms_iou in (0, 1], "
                         f"max_per_image >= 1): {c}")
+    if c["masks"] not in ("auto", "none") or not 0 < c["mask_threshold"] < 1:
+        raise CosyError(f"detect settings: masks must be auto or none and mask_threshold in (0, 1), got "
+                        f"{c['masks']!r}, {c['mask_threshold']}")
     if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0
             and 0 <= c["refine_boxes"] <= 5):
         raise CosyError("detect settings out of range (label_mix in [0, 1], label_ratio in (0, 1], background >= 0, "
@@ -156,10 +163,15 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
     -> (N, C + 1)`` probabilities (:class:`~cosy_cli.detection.classifier.OnnxClassifier`): the
     boxes are rescored with :func:`~cosy_cli.detection.classifier.rescore` (settings label_mix,
     label_ratio, background), then per-class NMS again; its seconds per image are appended to
-    ``classifier_times`` and included in the returned times."""
+    ``classifier_times`` and included in the returned times. A classifier with a mask head
+    (``has_mask_head``, setting ``masks`` auto) also gives each row its mask head output, in the
+    private column ``_mask`` ((S/4, S/4) probabilities, the crop's continuous box, the image's
+    (H, W)): :func:`segmentations_of_masks` turns the rows that are kept into segmentations."""
     from ..console import progress as progress_bar
 
     known = set(ds.models_info())
+    with_masks = classifier is not None and conf.get("masks", "auto") == "auto" and bool(
+        getattr(classifier, "has_mask_head", False))
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
     if images:  # one untimed warm-up call: the runtime's first call allocates (seconds), not per-image work
         rgb0 = ds.read_rgb(*images[0])
@@ -179,22 +191,29 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
         labels = np.asarray(labels).reshape(-1).astype(np.int64)
         if not (len(boxes) == len(scores) == len(labels)):
             raise RuntimeError(f"detector returned {len(boxes)} boxes, {len(scores)} scores, {len(labels)} labels")
+        mask_info = None
         if classifier is not None:
             from .boxes import nms_per_class
-            from .classifier import rescore
+            from .classifier import rescore, xyxy_continuous_to_xywh
 
             t1 = time.perf_counter()
-            if conf["refine_boxes"] and getattr(classifier, "has_box_head", False):
-                probs, boxes = classifier.classify_refine(rgb, boxes, conf["refine_boxes"])
+            passes = conf["refine_boxes"] if getattr(classifier, "has_box_head", False) else 0
+            if with_masks:
+                probs, crop_xyxy, mask_probs = classifier.classify_refine_masks(rgb, boxes, passes)
+                boxes = xyxy_to_xywh(clip_xyxy(xyxy_continuous_to_xywh(crop_xyxy), rgb.shape[1], rgb.shape[0]))
+            elif passes:
+                probs, boxes = classifier.classify_refine(rgb, boxes, passes)
                 boxes = xyxy_to_xywh(clip_xyxy(boxes, rgb.shape[1], rgb.shape[0]))
             else:
                 probs = classifier.classify(rgb, boxes)
-            boxes, scores, labels, _ = rescore(boxes, scores, labels, probs, classifier.obj_ids,
-                                               conf["label_mix"], conf["label_ratio"], conf["background"])
+            boxes, scores, labels, rows = rescore(boxes, scores, labels, probs, classifier.obj_ids,
+                                                  conf["label_mix"], conf["label_ratio"], conf["background"])
             # min_score was the detector's (objectness) threshold: a kept box is not dropped for being split
             # between labels (an object seen by a confident detector stays, under its plausible labels)
             keep = nms_per_class(boxes, scores, labels, conf["nms_iou"])[: conf["max_per_image"]]
-            boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+            boxes, scores, labels, rows = boxes[keep], scores[keep], labels[keep], rows[keep]
+            if with_masks:
+                mask_info = [(mask_probs[r], crop_xyxy[r], rgb.shape[:2]) for r in rows]
             dt_c = time.perf_counter() - t1
             dt += dt_c
             times[-1] = dt
@@ -210,15 +229,40 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
         for o in labels[~np.isin(labels, sorted(known))]:
             dropped[int(o)] = dropped.get(int(o), 0) + 1
         n = int(ok.sum())
-        parts.append(pd.DataFrame({
+        part = pd.DataFrame({
             "scene_id": np.full(n, sid, np.int64), "im_id": np.full(n, im, np.int64), "obj_id": labels[ok],
             "score": scores[ok], "x": boxes[ok, 0], "y": boxes[ok, 1], "w": boxes[ok, 2], "h": boxes[ok, 3],
-            "time": np.full(n, dt), "segmentation": pd.Series([None] * n, dtype=object)}))
+            "time": np.full(n, dt), "segmentation": pd.Series([None] * n, dtype=object)})
+        if with_masks:
+            part["_mask"] = pd.Series([m for m, k in zip(mask_info, ok) if k], dtype=object)
+        parts.append(part)
     if dropped:
         log("detect: dropped detections of labels that are not objects of the dataset: "
             + ", ".join(f"obj_id {o} x{n}" for o, n in sorted(dropped.items())))
     dets = pd.concat(parts, ignore_index=True) if parts else importers._empty_table()
     return dets, times
+
+
+def segmentations_of_masks(dets: pd.DataFrame, margin: float, threshold: float) -> pd.DataFrame:
+    """``dets`` with the private ``_mask`` column of :func:`run_detector` turned into each row's
+    ``segmentation`` (RLE of the mask head's output pasted into the image, thresholded at
+    ``threshold``; :func:`~cosy_cli.detection.classifier.paste_masks`) and dropped. Run it on the
+    rows that are kept: pasting and encoding cost about a millisecond per row."""
+    if "_mask" not in dets:
+        return dets
+    from ..io.masks import encode_mask
+    from .classifier import paste_masks
+
+    dets = dets.copy()
+    segs = []
+    for info in dets["_mask"]:
+        if not isinstance(info, tuple):
+            segs.append(None)
+            continue
+        probs, xyxy, shape = info
+        segs.append(encode_mask(paste_masks(probs[None], np.asarray(xyxy)[None], margin, shape, threshold)[0]))
+    dets["segmentation"] = pd.Series(segs, index=dets.index, dtype=object)
+    return dets.drop(columns=["_mask"])
 
 
 def _source(model, from_json, from_gt: bool) -> str:
@@ -289,6 +333,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         inputs["detections"] = {"path": str(Path(from_json).resolve()), "sha1": file_sha1(from_json)}
         inputs["coco_images"] = None if coco_images is None else {"path": str(Path(coco_images).resolve()),
                                                                   "sha1": file_sha1(coco_images)}
+    if not getattr(clf, "has_mask_head", False):  # recorded only where they apply: earlier outputs stay up to date
+        conf.pop("masks", None)
+        conf.pop("mask_threshold", None)
     if reuse_existing_file(out, doc_path, "detect", overwrite, conf, inputs, log=log):
         return None
 
@@ -313,6 +360,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
                                    classifier_times=clf_times)
         dets = keep_best(dets, 0.0 if clf is not None else conf["min_score"], conf["max_per_image"],
                          conf["max_per_object"])
+        dets = segmentations_of_masks(dets, getattr(getattr(clf, "config", None), "margin", 1.0),
+                                      conf.get("mask_threshold", 0.5))
         what = f"detector {model if model is not None else inputs['model']['object']}"
         if clf is not None:
             what += f" + box classifier {getattr(clf, 'path', type(clf).__qualname__)}"
@@ -332,6 +381,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             "model": inputs["classifier"], "label_mix": conf["label_mix"], "label_ratio": conf["label_ratio"],
             "background": conf["background"],
             "refine_boxes": conf["refine_boxes"] if getattr(clf, "has_box_head", False) else 0,
+            "masks": bool(getattr(clf, "has_mask_head", False)) and conf.get("masks") == "auto",
             "time_per_image_s": float(np.mean(clf_times)) if clf_times else None},
         "time_total_s": round(time.perf_counter() - t_start, 3),
     }
