@@ -332,6 +332,40 @@ def test_coco_ap_of_gt_is_one_and_of_shifted_boxes_less(ds, gt_dets):
     assert detection_ap.coco_ap(gt_dets.iloc[:0], ds, [1])["AP"] == 0.0
 
 
+def test_mask_ap_of_the_gt_masks_is_one_and_of_their_boxes_less(tmp_path, ds, gt_dets):
+    """Mask AP (pycocotools "segm") against the published visible masks: the GT masks as
+    segmentations score 1; their boxes filled as masks pass at IoU 0.5 less often and never at
+    0.95; detections without segmentations get no mask AP."""
+    import cv2
+
+    from cosy_cli.io.masks import encode_mask
+
+    assert detection_ap.coco_mask_ap(gt_dets, ds, [1]) is None  # no segmentations
+    d = importers.detections_from_gt(ds, [1], 0.1)
+    exact, boxes = d.drop(columns=["gt_index"]), d.drop(columns=["gt_index"])
+    segs, fills = [], []
+    for r in d.itertuples():
+        m = cv2.imread(str(ds.mask_path(1, r.im_id, r.gt_index, visib=True)), cv2.IMREAD_GRAYSCALE) > 0
+        segs.append(encode_mask(m))
+        f = np.zeros_like(m)
+        f[int(r.y):int(r.y + r.h) + 1, int(r.x):int(r.x + r.w) + 1] = True
+        fills.append(encode_mask(f))
+    exact["segmentation"] = pd.Series(segs, index=exact.index, dtype=object)
+    boxes["segmentation"] = pd.Series(fills, index=boxes.index, dtype=object)
+    s = detection_ap.coco_mask_ap(exact, ds, [1])
+    assert s["AP"] == pytest.approx(1.0) and s["AP50"] == pytest.approx(1.0)
+    s = detection_ap.coco_mask_ap(boxes, ds, [1])
+    assert s["AP"] < 0.7 and s["AP"] < s["AP50"]
+    assert detection_ap.coco_ap(boxes, ds, [1])["AP"] == pytest.approx(1.0)  # box AP does not look at masks
+    p = tmp_path / "dets.json"
+    importers.write_detections(p, boxes)
+    r = _run(["evaluate-detections", "--dataset", SAMPLES, "--split", "test", "--scene-id", 1, "--detections", p,
+              "--out", tmp_path / "ev"])
+    assert r.exit_code == 0, r.output
+    assert "mask AP" in r.output
+    assert json.loads((tmp_path / "ev" / "scores.json").read_text())["mask"]["AP"] == pytest.approx(s["AP"])
+
+
 def test_barely_visible_instances_are_ignored(ds):
     d = importers.detections_from_gt(ds, [2], 0.0)
     info = ds.scene_gt_info(2)

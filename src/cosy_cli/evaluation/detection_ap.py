@@ -11,6 +11,11 @@ As in COCO, an object that never appears in the ground truth gets no AP and its 
 not lower any other object's AP; :func:`confusion_matrix` shows what such mistakes (look-alike
 objects taking each other's labels) look like: for each GT box, the label of the detection that
 overlaps it best (IoU >= 0.5), whatever its label.
+
+Mask AP (:func:`coco_mask_ap`, pycocotools' "segm"): when every detection carries a
+``segmentation`` and every GT instance of the scenes has its visible mask (``mask_visib/``, as
+the BOP datasets publish them; ``cosy gt-info --masks`` renders them), the same protocol on the
+masks instead of the boxes.
 """
 
 from __future__ import annotations
@@ -141,6 +146,85 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
     return out
 
 
+def _gt_masks(ds: BopDataset, gt: pd.DataFrame) -> list | None:
+    """The visible mask (BOP ``mask_visib/`` PNG) of each GT row, as a COCO RLE; None when one is missing."""
+    import cv2
+    from pycocotools import mask as mask_util
+
+    out = []
+    for r in gt.itertuples(index=False):
+        p = ds.mask_path(int(r.scene_id), int(r.im_id), int(r.gt_index), visib=True)
+        if not p.is_file():
+            return None
+        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            raise CosyError("cannot read this mask image", path=p)
+        rle = mask_util.encode(np.asfortranarray(m > 0))
+        rle["counts"] = rle["counts"].decode("ascii")
+        out.append(rle)
+    return out
+
+
+def coco_mask_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract: float = 0.1) -> dict | None:
+    """COCO mask AP ("segm", pycocotools) of ``dets`` whose every row has a ``segmentation``
+    against the GT visible masks (``mask_visib/``) of ``scene_ids``: {"AP", "AP50", "AP75",
+    "AR100"}; None when a detection lacks a segmentation or a GT instance its mask. Crowd
+    (ignored) instances as in :func:`coco_ap`."""
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    from ..io.masks import SegmentationError, decode_segmentation
+
+    scene_ids = ds.scene_ids if scene_ids is None else [int(s) for s in scene_ids]
+    dets = _select(dets, scene_ids)
+    if "segmentation" not in dets or not len(dets) or dets["segmentation"].isna().any():
+        return None
+    gt = _gt_boxes(ds, scene_ids)
+    masks = _gt_masks(ds, gt)
+    if masks is None or not len(gt):
+        return None
+    from pycocotools import mask as mask_util
+
+    img = _image_index(ds, scene_ids)
+    crowd = (gt["visib_fract"] < min_visib_fract).to_numpy()
+    obj_ids = sorted(set(ds.models_info()) | set(gt["obj_id"].tolist()) | set(dets["obj_id"].astype(int).tolist()))
+    anns = []
+    for n, (r, c, m) in enumerate(zip(gt.itertuples(index=False), crowd, masks)):
+        anns.append({"id": n + 1, "image_id": img[(int(r.scene_id), int(r.im_id))], "category_id": int(r.obj_id),
+                     "segmentation": m, "area": float(mask_util.area(dict(m, counts=m["counts"].encode("ascii")))),
+                     "bbox": [r.x, r.y, r.w, r.h], "iscrowd": int(c)})
+    shape = {(int(r.scene_id), int(r.im_id)): tuple(m["size"]) for m, r in zip(masks, gt.itertuples(index=False))}
+    any_shape = next(iter(shape.values()))  # an image without GT instances: the dataset's image size
+    res = []
+    for row in dets.itertuples(index=False):
+        key = (int(row.scene_id), int(row.im_id))
+        seg = row.segmentation
+        size = shape.get(key, any_shape)
+        try:
+            mk = decode_segmentation(seg, size)
+        except (SegmentationError, TypeError) as e:
+            raise CosyError(f"detection of obj_id {int(row.obj_id)} in scene {key[0]} image {key[1]}: {e}") from None
+        rle = mask_util.encode(np.asfortranarray(mk))
+        rle["counts"] = rle["counts"].decode("ascii")
+        res.append({"image_id": img[key], "category_id": int(row.obj_id), "segmentation": rle,
+                    "score": float(row.score)})
+    with contextlib.redirect_stdout(io.StringIO()):
+        coco_gt = COCO()
+        coco_gt.dataset = {"images": [{"id": n, "file_name": f"{s:06d}/{i:06d}", "height": shape.get((s, i), any_shape)[0],
+                                       "width": shape.get((s, i), any_shape)[1]} for (s, i), n in img.items()],
+                           "categories": [{"id": int(o), "name": f"obj_{int(o):06d}"} for o in obj_ids],
+                           "annotations": anns}
+        coco_gt.createIndex()
+        coco_dt = coco_gt.loadRes(res)
+        E = COCOeval(coco_gt, coco_dt, "segm")
+        E.params.imgIds = sorted(img.values())
+        E.evaluate()
+        E.accumulate()
+        E.summarize()
+    s = E.stats
+    return {"AP": float(s[0]), "AP50": float(s[1]), "AP75": float(s[2]), "AR100": float(s[8])}
+
+
 def ap_from_matches(scores: np.ndarray, tp: np.ndarray, fp: np.ndarray, n_gt: float, weights: np.ndarray | None = None,
                     rec_thrs: np.ndarray = np.linspace(0.0, 1.0, 101)) -> float:
     """COCO's interpolated AP of one category at one IoU threshold (``COCOeval.accumulate``):
@@ -269,6 +353,7 @@ def main(dataset: str | Path, split: str, detections: str | Path, out: str | Pat
         log(f"evaluate-detections: no detections at all in scene(s) {uncovered} (restrict with --scene-id if they "
             "were not meant to be detected)")
     scores = coco_ap(dets, ds, scene_ids, min_visib_fract)
+    scores["mask"] = coco_mask_ap(dets, ds, scene_ids, min_visib_fract)
     table = confusion_matrix(dets, ds, scene_ids, min_visib_fract)
     scores["confusion"] = confusion_summary(table)
     scores["inputs"] = {"dataset": str(Path(dataset).resolve()), "split": split, "scene_ids": scene_ids,
@@ -292,6 +377,10 @@ def format_scores(scores: dict) -> str:
              f"ignored (visib < {scores['min_visib_fract']:g}), {scores['detections']} detections; {scores['tool']})"]
     if ci:
         lines.append(f"(AP50 intervals: {ci['level']:.0%}, bootstrap over {ci['units']} {ci['unit']}s)")
+    mk = scores.get("mask")
+    if mk:
+        lines.append(f"mask AP {mk['AP']:.3f}  AP50 {mk['AP50']:.3f}  AP75 {mk['AP75']:.3f}  AR100 {mk['AR100']:.3f}  "
+                     "(the detections' segmentations against the GT visible masks, mask_visib/)")
     per = scores["per_object"]
     conf = scores.get("confusion", {})
     lines.append(f"{'obj_id':>7s} {'GT':>5s} {'dets':>5s} {'AP50':>6s} {'interval':>11s} {'AP':>6s}  label mistakes "
