@@ -150,6 +150,25 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
         r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--box-scales", bad, "--out", str(out2)])
         assert r.exit_code == 2 and "box_scales" in r.output, (bad, r.output)
     assert estimate_stage.resolve_conf("default")["box_scales"] == [1.0]
+    # --mask-weight: recorded when not the default, reaches the verifier; negative refused
+    assert "mask_weight" not in json.loads((tmp_path / "v.json").read_text())["conf"]
+    out3 = tmp_path / "mw.csv"
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
+              "--depth-refine", "none", "--verify-top", "8", "--rgb-refine", "none", "--top-k", "2",
+              "--mask-weight", "0.5", "--templates-dir", str(templates_dir), "--out", str(out3)])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "mw.json").read_text())["conf"]["mask_weight"] == 0.5
+    r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--mask-weight", "-1", "--out", str(out3)])
+    assert r.exit_code == 2 and "mask-weight" in r.output
+    from cosy_cli.objects import ObjectDatabase
+
+    db = ObjectDatabase.from_models_dir(SCENE.parent.parent / "models")
+    for w in (0.5, 2.0):
+        est = estimate_stage.Estimator(estimate_stage.resolve_conf("default", mask_weight=w), db)
+        try:
+            assert est.verifier.conf.w_mask == w
+        finally:
+            est.close()
     from cosy_cli.errors import CosyError
 
     with pytest.raises(CosyError, match="icp_screen: expected a whole number, got 'many'"):

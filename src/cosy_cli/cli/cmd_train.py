@@ -133,7 +133,9 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     each hypothesis' share of the BOP recall (MSSD, MSPD); use it with `cosy estimate --scorer`.
 
     Box classifier (second stage of `cosy detect`): crops of the visible boxes of rendered scenes
-    (plus background crops), cross-entropy.
+    (plus background crops), cross-entropy; with --preset real also a box head (where the object's
+    visible box lies) and a mask head (its visible mask, which `cosy detect` writes as the
+    detections' segmentations).
 
     Pose networks: disentangled symmetric loss (mm), Adam with warm-up; the refiner's input-pose
     noise follows a curriculum from 0.3 to 1.0 of its full size over the first half of

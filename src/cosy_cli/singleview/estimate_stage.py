@@ -84,18 +84,20 @@ CONFS = {
         "hypotheses": 1,              # poses per detection written (>1: the verified runners-up in a sidecar CSV)
         "masks": "auto",              # auto: use the detections' segmentations where they have them | none
         "box_scales": [1.0],          # templates: each hypothesis also at these factors of its distance (loose boxes)
+        "mask_weight": 2.0,           # verification: weight of the silhouette's IoU with a detection's mask (where it
+                                      # has one; 2 chosen for exact masks)
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
               "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto",
-              "box_scales": [1.0]},
+              "box_scales": [1.0], "mask_weight": 2.0},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
-                      "masks": "auto", "box_scales": [1.0]},
+                      "masks": "auto", "box_scales": [1.0], "mask_weight": 2.0},
 }
 
 
@@ -120,6 +122,12 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
                 from None
     c["min_visib_fract"] = float(c["min_visib_fract"])
     c["image_weight"] = float(c["image_weight"])
+    try:
+        c["mask_weight"] = float(c["mask_weight"])
+    except (TypeError, ValueError):
+        raise CosyError(f"estimate setting mask_weight: expected a number >= 0, got {c['mask_weight']!r}") from None
+    if c["mask_weight"] < 0:
+        raise CosyError("estimate setting mask_weight must be >= 0")
     bs = c["box_scales"]
     try:
         bs = [float(v) for v in (bs.split(",") if isinstance(bs, str) else (bs if isinstance(bs, (list, tuple)) else [bs]))]
@@ -270,7 +278,10 @@ class Estimator:
         if self._verifier is None:
             from .training_free.verify import Verifier
 
-            self._verifier = Verifier(self.db, scorer=self.scorer)
+            from .training_free.verify import VerifyConf
+
+            self._verifier = Verifier(self.db, VerifyConf(w_mask=float(self.conf.get("mask_weight", 2.0))),
+                                      scorer=self.scorer)
         return self._verifier
 
     @property
@@ -552,6 +563,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
     refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
+    if run_conf.get("mask_weight") == CONFS["default"]["mask_weight"]:  # recorded only when changed: earlier
+        run_conf.pop("mask_weight")                                     # outputs stay up to date
     n_hyp = int(run_conf.pop("hypotheses", 1))
     if n_hyp > 1:  # recorded only when used: outputs of earlier versions stay up to date
         run_conf["hypotheses"] = n_hyp
