@@ -160,6 +160,9 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
     assert json.loads((tmp_path / "mw.json").read_text())["conf"]["mask_weight"] == 0.5
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--mask-weight", "-1", "--out", str(out3)])
     assert r.exit_code == 2 and "mask-weight" in r.output
+    with pytest.raises(Exception, match="mask_band"):
+        estimate_stage.resolve_conf("default", mask_band=-1)
+    assert estimate_stage.resolve_conf("default", mask_band="3")["mask_band"] == 3
     from cosy_cli.objects import ObjectDatabase
 
     db = ObjectDatabase.from_models_dir(SCENE.parent.parent / "models")

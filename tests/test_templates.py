@@ -218,6 +218,30 @@ def test_response_maps_follow_the_box_and_the_image_metric():
     assert r[6][on].mean() < 10  # the perpendicular orientation hardly responds
 
 
+def test_response_maps_with_a_mask_keep_its_band_and_its_outline():
+    """With a detection mask and mask_band > 0: an image edge far from the mask no longer responds
+    (clutter), and the mask's own outline responds even where the image shows no edge (an object
+    the colour of its background); without the mask, or with mask_band 0, the maps are as before."""
+    H, W = 240, 320
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    img = np.where(xx > 200, 200, 60).astype(np.uint8)  # a vertical image edge at x = 200 (clutter)
+    rgb = np.repeat(img[..., None], 3, -1)
+    mask = (xx - 120) ** 2 + (yy - 120) ** 2 < 40 ** 2  # a disc on a flat region: no image edge there
+    box = np.array([70.0, 70.0, 230.0, 170.0])
+    plain = tp.response_maps(rgb, box, tp.MatchParams(spread=0))
+    np.testing.assert_array_equal(tp.response_maps(rgb, box, tp.MatchParams(spread=0), mask), plain)  # band 0: off
+    masked = tp.response_maps(rgb, box, tp.MatchParams(spread=0, mask_band=3), mask)
+    p = tp.MatchParams()
+    c = np.arange(p.grid + 2 * p.pad) + 0.5 - p.pad
+    X, Y = np.meshgrid(box[0] + c * 160 / p.grid, box[1] + c * 100 / p.grid)
+    edge = np.abs(X - 200) < 1.5
+    rim = np.abs(np.hypot(X - 120, Y - 120) - 40) < 1.0
+    assert plain.max(0)[edge].mean() > 250 and plain.max(0)[rim].mean() < 5
+    assert masked.max(0)[edge].mean() < 5 and masked.max(0)[rim].mean() > 200
+    no_outline = tp.response_maps(rgb, box, tp.MatchParams(spread=0, mask_band=3, mask_outline=False), mask)
+    assert no_outline.max(0)[rim].mean() < 5 and no_outline.max(0)[edge].mean() < 5
+
+
 def test_template_set_round_trip(tmp_path, db):
     ts = tp.build_templates(db, SMALL, obj_ids=[HEX], progress=False)
     ts.save(tmp_path / "t")
@@ -377,3 +401,19 @@ def test_hypotheses_at_other_distances_keep_their_projected_centre():
     np.testing.assert_allclose(proj, np.repeat(T[..., :2, 3] / T[..., 2:3, 3], 3, 1))
     np.testing.assert_allclose(v.T_cam_obj[..., :3, :3], np.repeat(T[..., :3, :3], 3, 1))
     assert (v.template_index[:, :3] == h.template_index[:, :1]).all() and (v.scores[:, 3:6] == h.scores[:, 1:2]).all()
+
+
+def test_interleave_takes_hypotheses_in_turn_without_repeats():
+    def hyp(idx):
+        idx = np.asarray(idx)
+        T = np.tile(np.eye(4), idx.shape + (1, 1))
+        T[..., 0, 3] = idx
+        return tp.TemplateHypotheses(T, idx / 100.0, idx)
+
+    a, b = hyp([[1, 2, 3, 4]]), hyp([[9, 2, 8, -1]])
+    h = tp.interleave(a, b, 5)
+    assert h.template_index.tolist() == [[1, 9, 2, 3, 8]]  # a, b, a, (b's 2 taken), a, b
+    np.testing.assert_allclose(h.T_cam_obj[0, :, 0, 3], [1, 9, 2, 3, 8])
+    np.testing.assert_allclose(h.scores[0], [0.01, 0.09, 0.02, 0.03, 0.08])
+    short = tp.interleave(hyp([[1]]), hyp([[1]]), 3)  # fewer distinct templates than asked: -1 / NaN after
+    assert short.template_index.tolist() == [[1, -1, -1]] and np.isnan(short.scores[0, 1:]).all()

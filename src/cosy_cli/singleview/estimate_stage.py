@@ -86,18 +86,20 @@ CONFS = {
         "box_scales": [1.0],          # templates: each hypothesis also at these factors of its distance (loose boxes)
         "mask_weight": 2.0,           # verification: weight of the silhouette's IoU with a detection's mask (where it
                                       # has one; 2 chosen for exact masks)
+        "mask_band": 0,               # templates: with a detection's mask, only gradients within this many cells of
+                                      # it (of 64 across the box) count, and its outline does (0: off)
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
               "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto",
-              "box_scales": [1.0], "mask_weight": 2.0},
+              "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
-                      "masks": "auto", "box_scales": [1.0], "mask_weight": 2.0},
+                      "masks": "auto", "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0},
 }
 
 
@@ -109,7 +111,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     for k, allowed in choices.items():
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
-    for k in ("refiner_iterations", "top_k", "icp_screen", "batch_size", "icp_iterations", "hypotheses"):
+    for k in ("refiner_iterations", "top_k", "icp_screen", "batch_size", "icp_iterations", "hypotheses",
+              "mask_band"):
         try:
             c[k] = int(c[k])
         except (TypeError, ValueError):
@@ -141,6 +144,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError("estimate setting image_weight must be >= 0")
     if c["verify_top"] != "auto" and c["verify_top"] < 0:
         raise CosyError("estimate setting verify_top must be >= 0 (0: no verification by rendering)")
+    if not 0 <= c["mask_band"] <= 32:
+        raise CosyError("estimate setting mask_band must be 0 (off) to 32 cells")
     if c["hypotheses"] < 1:
         raise CosyError("estimate setting hypotheses must be >= 1 (1: one pose per detection, no sidecar)")
     if c["refiner_iterations"] < 0 or c["top_k"] < 1 or c["batch_size"] < 1 or c["icp_iterations"] < 1 \
@@ -323,13 +328,19 @@ class Estimator:
             hyp = self.coarse_net.coarse(rgb, K, boxes, obj_ids)[:, None]
             hyp_score = np.ones((N, 1))
         else:
-            from .training_free.templates import MatchParams, at_distances, match_templates
+            from .training_free.templates import MatchParams, at_distances, interleave, match_templates
 
             nv = c.get("verify_top", 0)
             verified = nv > 0
             if verified:  # many distinct templates, re-ranked by rendering them against the image
-                h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=max(nv, c["top_k"]),
-                                    params=MatchParams(nms_deg=10.0))
+                kt = max(nv, c["top_k"])
+                h = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=kt, params=MatchParams(nms_deg=10.0))
+                if c.get("mask_band", 0) and masks is not None and any(m is not None for m in masks):
+                    # half the hypotheses from the gradients near the detection's mask (less clutter): an
+                    # exact mask makes those right, a wrong one costs only half the candidates
+                    hm = match_templates(self.templates, rgb, K, boxes, obj_ids, top_k=kt, masks=masks,
+                                         params=MatchParams(nms_deg=10.0, mask_band=int(c["mask_band"])))
+                    h = interleave(hm, h, kt)
                 if c.get("box_scales", [1.0]) != [1.0]:  # a loose box: its size says the distance only roughly
                     h = at_distances(h, c["box_scales"])
                 # the cascade (coarse copies first) with depth too: see verify's module docstring
@@ -563,8 +574,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
     refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
-    if run_conf.get("mask_weight") == CONFS["default"]["mask_weight"]:  # recorded only when changed: earlier
-        run_conf.pop("mask_weight")                                     # outputs stay up to date
+    for k in ("mask_weight", "mask_band"):  # recorded only when changed: earlier outputs stay up to date
+        if run_conf.get(k) == CONFS["default"][k]:
+            run_conf.pop(k)
     n_hyp = int(run_conf.pop("hypotheses", 1))
     if n_hyp > 1:  # recorded only when used: outputs of earlier versions stay up to date
         run_conf["hypotheses"] = n_hyp

@@ -623,6 +623,9 @@ class MatchParams:
     depth_from: str = "max"
     refine_depth: int = 2
     nms_deg: float = 0.0
+    mask_band: int = 0         # with a detection mask: keep the image's gradients within this many cells of the
+                               # mask (0: the mask is not used here); its outline also counts as an edge
+    mask_outline: bool = True
 
 
 @dataclass
@@ -651,10 +654,13 @@ def _response_lut() -> np.ndarray:
 _LUT = _response_lut()
 
 
-def response_maps(rgb: np.ndarray, box: np.ndarray, params: MatchParams) -> np.ndarray:
+def response_maps(rgb: np.ndarray, box: np.ndarray, params: MatchParams, mask: np.ndarray | None = None) -> np.ndarray:
     """(8, S, S) uint8 response maps (255: an orientation present that is the template's) of a
     detection box (x1, y1, x2, y2 px, pixel edges) of an RGB (H, W, 3) image, S = grid + 2 pad:
-    the box's edges land on the edges of cells pad and pad + grid."""
+    the box's edges land on the edges of cells pad and pad + grid. ``mask`` (H, W) bool, the
+    detection's segmentation, with ``params.mask_band`` > 0: gradients farther than that many
+    cells from the mask are dropped (clutter), and with ``mask_outline`` the mask's own outline
+    counts as gradients too (a silhouette edge against a background of the same colour)."""
     import cv2
 
     G, pad = params.grid, params.pad
@@ -677,11 +683,24 @@ def response_maps(rgb: np.ndarray, box: np.ndarray, params: MatchParams) -> np.n
     # pixel-edge x -> cell edge (x - ex1) * sx; with pixel centres: c = (x + 0.5 - ex1) * sx - 0.5
     A = np.array([[sx, 0.0, (X0 + 0.5 - ex1) * sx - 0.5], [0.0, sy, (Y0 + 0.5 - ey1) * sy - 0.5]])
     crop = cv2.warpAffine(sub, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    gx, gy = sobel(np.moveaxis(crop.astype(np.float32), -1, 0))  # (3, S, S)
+    channels = np.moveaxis(crop.astype(np.float32), -1, 0)
+    band = None
+    if mask is not None and params.mask_band > 0:
+        msub = np.ascontiguousarray(np.asarray(mask)[Y0:Y1, X0:X1], dtype=np.float32) * 255.0
+        mcrop = cv2.warpAffine(msub, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=0.0)
+        inside = (mcrop >= 127.5).astype(np.uint8)
+        k = 2 * params.mask_band + 1
+        band = cv2.dilate(inside, np.ones((k, k), np.uint8)) > 0
+        if params.mask_outline:  # a fourth channel: the mask itself, an edge wherever its outline runs
+            channels = np.concatenate([channels, mcrop[None]], 0)
+    gx, gy = sobel(channels)  # (3 or 4, S, S)
     mag2 = gx * gx + gy * gy
     c = np.argmax(mag2, axis=0)[None]
     gx, gy = np.take_along_axis(gx, c, 0)[0], np.take_along_axis(gy, c, 0)[0]
     strong = np.take_along_axis(mag2, c, 0)[0] >= params.min_gradient ** 2
+    if band is not None:
+        strong &= band
     # directions in the image's metric: d/dx_image = sx d/dx_cell
     bins = orientation_bins(np.arctan2(gy * sy, gx * sx))
     mask = np.where(strong, np.left_shift(1, bins), 0).astype(np.uint8)
@@ -804,6 +823,30 @@ def at_distances(h: TemplateHypotheses, factors) -> TemplateHypotheses:
                               np.repeat(h.template_index, len(f), 1))
 
 
+def interleave(a: TemplateHypotheses, b: TemplateHypotheses, k: int) -> TemplateHypotheses:
+    """``k`` hypotheses per detection taken in turn from ``a`` and ``b`` (a's first, then b's first,
+    ...; a template already taken is skipped, and what one side lacks the other fills): e.g. the
+    matches of a detection with and without its mask, for the verification to choose from."""
+    N = a.T_cam_obj.shape[0]
+    T = np.tile(np.eye(4), (N, k, 1, 1))
+    sc = np.full((N, k), np.nan)
+    idx = np.full((N, k), -1, np.int64)
+    for n in range(N):
+        order = [(src, j) for j in range(max(a.scores.shape[1], b.scores.shape[1])) for src in (a, b)
+                 if j < src.scores.shape[1] and src.template_index[n, j] >= 0]
+        seen, m = set(), 0
+        for src, j in order:
+            t = int(src.template_index[n, j])
+            if t in seen:
+                continue
+            seen.add(t)
+            T[n, m], sc[n, m], idx[n, m] = src.T_cam_obj[n, j], src.scores[n, j], t
+            m += 1
+            if m == k:
+                break
+    return TemplateHypotheses(T, sc, idx)
+
+
 def select_top(t: ObjectTemplates, scores: np.ndarray, k: int, nms_deg: float = 0.0, pool: int = 256) -> np.ndarray:
     """Indices of the ``k`` best templates by score, best first. With ``nms_deg`` > 0, a template is
     skipped when its rotation is within ``nms_deg`` degrees of a better one already taken (among
@@ -826,11 +869,14 @@ def select_top(t: ObjectTemplates, scores: np.ndarray, k: int, nms_deg: float = 
 
 
 def match_templates(templates: TemplateSet, rgb: np.ndarray, K: np.ndarray, boxes: np.ndarray,
-                    obj_ids: Sequence[int], top_k: int = 5, params: MatchParams | None = None) -> TemplateHypotheses:
+                    obj_ids: Sequence[int], top_k: int = 5, params: MatchParams | None = None,
+                    masks=None) -> TemplateHypotheses:
     """The ``top_k`` best templates of each detection and their poses.
 
     rgb (H, W, 3) uint8; K (3, 3) px; boxes (N, 4) x1, y1, x2, y2 px (pixel edges: x2 = x + w);
-    obj_ids (N,). Returns T_cam_obj (N, k, 4, 4) mm, scores (N, k), template_index (N, k)."""
+    obj_ids (N,); masks: None or per detection an (H, W) bool segmentation or None (used with
+    ``params.mask_band`` > 0, see :func:`response_maps`). Returns T_cam_obj (N, k, 4, 4) mm,
+    scores (N, k), template_index (N, k)."""
     params = params or MatchParams()
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3:
@@ -845,7 +891,8 @@ def match_templates(templates: TemplateSet, rgb: np.ndarray, K: np.ndarray, boxe
     index = np.full((N, k), -1, dtype=np.int64)
     for n in range(N):  # one gather over all templates per detection
         t = templates[obj_ids[n]]
-        s = score_templates(t, response_maps(rgb, boxes[n], params), params)
+        m = None if masks is None else masks[n]
+        s = score_templates(t, response_maps(rgb, boxes[n], params, m), params)
         top = select_top(t, s, k, params.nms_deg)
         kk = len(top)
         index[n, :kk] = top
