@@ -193,6 +193,14 @@ def test_classifier_setting_through_the_command_line(tmp_path, untrained):
     assert r.exit_code == 0 and json.loads((tmp_path / "e.meta.json").read_text())["classifier"] is None
 
 
+def test_a_classifier_without_mask_head_cannot_add_masks_to_gt_boxes(tmp_path, untrained):
+    r = _run(["detect", "--scene", SCENE, "--from-gt", "--classifier", untrained, "--out", tmp_path / "d.json"])
+    assert r.exit_code == 2 and "no mask head" in r.output and "Traceback" not in r.output
+    r = _run(["detect", "--scene", SCENE, "--from-gt", "--out", tmp_path / "d.json"])  # no classifier: as before
+    assert r.exit_code == 0, r.output
+    assert all(d.get("segmentation") is None for d in json.loads((tmp_path / "d.json").read_text()))
+
+
 def test_bad_classifier_files_are_user_errors(tmp_path, untrained):
     junk = tmp_path / "junk.onnx"
     junk.write_bytes(b"not an onnx file")
@@ -501,3 +509,12 @@ def test_mask_head_learns_the_visible_masks_of_rendered_objects(tmp_path):
               tmp_path / "d_auto.json", "--out", tmp_path / "est"])
     assert r.exit_code == 0, r.output
     assert "have a segmentation" in r.output
+    # boxes from elsewhere (here the GT boxes): the classifier adds its masks, boxes and labels stay
+    stage.main({"classifier": "object"}, SAMPLES, "test", tmp_path / "gt.json", scene_ids=[1], from_gt=True,
+               classifier=clf, progress=False)
+    gt = bop.read_detections(tmp_path / "gt.json")
+    plain = stage.importers.detections_from_gt(stage.BopDataset(SAMPLES, "test"), [1], 0.1)
+    assert len(gt) == len(plain) and gt["segmentation"].map(lambda v: isinstance(v, dict)).all()
+    assert sorted(map(tuple, gt[["im_id", "obj_id", "x", "y"]].to_numpy().tolist())) == \
+        sorted(map(tuple, plain[["im_id", "obj_id", "x", "y"]].to_numpy().tolist()))
+    assert json.loads((tmp_path / "gt.meta.json").read_text())["classifier"]["masks_added"] == len(gt)

@@ -265,6 +265,35 @@ def segmentations_of_masks(dets: pd.DataFrame, margin: float, threshold: float) 
     return dets.drop(columns=["_mask"])
 
 
+def add_masks(dets: pd.DataFrame, ds: BopDataset, classifier, threshold: float, *, log=print,
+              progress: bool = True) -> tuple[pd.DataFrame, int]:
+    """Boxes from elsewhere (GT boxes, another tool's detections) with the masks of a classifier's
+    mask head: each row without a ``segmentation`` gets the mask the classifier sees in its box
+    (the box, label and score stay). Returns (the table, the number of masks added)."""
+    from ..console import progress as progress_bar
+    from ..io.masks import encode_mask
+    from .classifier import paste_masks, xywh_to_xyxy_continuous
+
+    dets = dets.copy()
+    if "segmentation" not in dets:
+        dets["segmentation"] = pd.Series([None] * len(dets), index=dets.index, dtype=object)
+    todo = dets["segmentation"].isna().to_numpy()
+    groups = dets[todo].groupby(["scene_id", "im_id"]).indices
+    index = dets.index[todo]
+    added = 0
+    for (sid, im), rows in progress_bar(sorted(groups.items()), desc="masks", unit="image", enabled=progress):
+        rgb = ds.read_rgb(int(sid), int(im))
+        sel = dets.loc[index[rows]]
+        boxes = sel[["x", "y", "w", "h"]].to_numpy(np.float64)
+        _, xyxy, masks = classifier.classify_refine_masks(rgb, boxes, 0)
+        pasted = paste_masks(masks, xyxy, classifier.config.margin, rgb.shape[:2], threshold)
+        for i, m in zip(index[rows], pasted):
+            dets.at[i, "segmentation"] = encode_mask(m)
+            added += 1
+    log(f"detect: {added} masks from the box classifier {getattr(classifier, 'path', '')} added to the boxes")
+    return dets, added
+
+
 def _source(model, from_json, from_gt: bool) -> str:
     given = [n for n, v in (("--model", model), ("--from-json", from_json)) if v is not None] + \
         (["--from-gt"] if from_gt else [])
@@ -333,6 +362,16 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         inputs["detections"] = {"path": str(Path(from_json).resolve()), "sha1": file_sha1(from_json)}
         inputs["coco_images"] = None if coco_images is None else {"path": str(Path(coco_images).resolve()),
                                                                   "sha1": file_sha1(coco_images)}
+    if source != "model" and (classifier is not None or conf["classifier"] not in ("auto", "none")):
+        # boxes from elsewhere: a classifier named explicitly adds the masks of its mask head
+        clf = classifier if classifier is not None else load_classifier(conf["classifier"], ds.models_info(),
+                                                                       None, conf["providers"], log=log)
+        if not getattr(clf, "has_mask_head", False):
+            raise CosyError("with --from-gt or --from-json, --classifier adds its masks to the boxes, and this "
+                            "classifier has no mask head (train one with `cosy train classifier --preset real`)",
+                            path=getattr(clf, "path", None))
+        inputs["classifier"] = ({"path": str(Path(clf.path).resolve()), "sha1": file_sha1(clf.path)}
+                                if hasattr(clf, "path") else {"object": f"{type(clf).__module__}.{type(clf).__qualname__}"})
     if not getattr(clf, "has_mask_head", False):  # recorded only where they apply: earlier outputs stay up to date
         conf.pop("masks", None)
         conf.pop("mask_threshold", None)
@@ -366,6 +405,11 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         if clf is not None:
             what += f" + box classifier {getattr(clf, 'path', type(clf).__qualname__)}"
 
+    n_added = None
+    if source != "model" and clf is not None and conf.get("masks") == "auto":
+        dets, n_added = add_masks(dets.reset_index(drop=True), ds, clf, conf["mask_threshold"], log=log,
+                                  progress=progress)
+        what += f" + masks of the box classifier {getattr(clf, 'path', type(clf).__qualname__)}"
     dets = dets.sort_values(["scene_id", "im_id", "score"], ascending=[True, True, False], kind="stable")
     dets = dets.reset_index(drop=True)
     n_images = sum(len(ds.image_ids(s)) for s in scene_ids)
@@ -380,8 +424,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         "classifier": None if clf is None else {
             "model": inputs["classifier"], "label_mix": conf["label_mix"], "label_ratio": conf["label_ratio"],
             "background": conf["background"],
-            "refine_boxes": conf["refine_boxes"] if getattr(clf, "has_box_head", False) else 0,
+            "refine_boxes": conf["refine_boxes"] if getattr(clf, "has_box_head", False) and source == "model" else 0,
             "masks": bool(getattr(clf, "has_mask_head", False)) and conf.get("masks") == "auto",
+            **({"masks_added": n_added} if n_added is not None else {}),
             "time_per_image_s": float(np.mean(clf_times)) if clf_times else None},
         "time_total_s": round(time.perf_counter() - t_start, 3),
     }

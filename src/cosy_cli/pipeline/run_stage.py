@@ -195,10 +195,12 @@ def _run_scene(task: dict) -> dict:
             inputs = {"source": task["source"], "file": _digest_of(src), "coco_images": _digest_of(task.get("coco_images"))}
             if task["source"] == "gt":
                 inputs["gt_info"] = _digest_of(BopDataset(dataset, split).scene_file(sid, "scene_gt_info"))
+            clf = str(confs["detect"].get("classifier", "auto"))
             if task["source"] == "model":  # the box classifier that follows the detector (its file, not its name)
-                clf = str(confs["detect"].get("classifier", "auto"))
                 inputs["classifier"] = _digest_of(detect_stage.SHIPPED_CLASSIFIER if clf == "auto"
                                                   else None if clf == "none" else clf)
+            elif clf not in ("auto", "none"):  # boxes from elsewhere: the classifier adds its masks
+                inputs["classifier"] = _digest_of(clf)
             unit("detect", confs["detect"], inputs, ["detections.json"], lambda: detect_stage.main(
                 confs["detect"], dataset, split, dets, overwrite=True, scene_ids=[sid],
                 model=src if task["source"] == "model" else None,
