@@ -40,7 +40,8 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @click.option("--classifier", default=None, metavar="auto|none|PATH",
               help="Detector: second-stage box classifier that relabels each box from a close-up crop and keeps "
                    "a second label when unsure (score x its probability): auto = the shipped one with the shipped "
-                   "detector when it knows the dataset's objects, none, or an exported classifier ONNX [auto].")
+                   "detector when it knows the dataset's objects, none, or an exported classifier ONNX [auto]. With "
+                   "--from-gt or --from-json, a classifier PATH with a mask head adds its masks to the boxes.")
 @click.option("--label-ratio", type=click.FloatRange(0, 1, min_open=True), default=None,
               help="With a classifier: also emit a box under every label whose probability is at least this x "
                    "the best label's [0.2].")
