@@ -155,9 +155,10 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
     out3 = tmp_path / "mw.csv"
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--coarse", "templates", "--refiner", "none",
               "--depth-refine", "none", "--verify-top", "8", "--rgb-refine", "none", "--top-k", "2",
-              "--mask-weight", "0.5", "--templates-dir", str(templates_dir), "--out", str(out3)])
+              "--mask-weight", "0.5", "--mask-band", "3", "--templates-dir", str(templates_dir), "--out", str(out3)])
     assert r.exit_code == 0, r.output
-    assert json.loads((tmp_path / "mw.json").read_text())["conf"]["mask_weight"] == 0.5
+    conf = json.loads((tmp_path / "mw.json").read_text())["conf"]
+    assert conf["mask_weight"] == 0.5 and conf["mask_band"] == 3
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--mask-weight", "-1", "--out", str(out3)])
     assert r.exit_code == 2 and "mask-weight" in r.output
     with pytest.raises(Exception, match="mask_band"):

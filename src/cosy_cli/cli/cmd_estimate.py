@@ -67,6 +67,10 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
               help="Detections' segmentations (a `segmentation` RLE or polygons per detection, as in BOP's default "
                    "detections): auto uses them where present, in the verification of the template hypotheses "
                    "(each pose's silhouette against the mask); none: boxes only [auto].")
+@click.option("--mask-band", type=click.IntRange(0, 32), default=None,
+              help="Templates, detections with masks: half the verified hypotheses come from matching only the "
+                   "image gradients within this many cells (of 64 across the box) of the mask, and its outline "
+                   "[0: off].")
 @click.option("--mask-weight", type=click.FloatRange(min=0), default=None,
               help="Weight of a pose silhouette's IoU with the detection's mask in the verification [2, chosen for "
                    "exact masks; masks from a classifier onboarded from meshes are less sure].")
@@ -81,7 +85,7 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
              depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, box_scales, masks,
-             mask_weight, templates_dir, scorer_model, providers, batch_size,
+             mask_band, mask_weight, templates_dir, scorer_model, providers, batch_size,
              overwrite) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
@@ -98,7 +102,7 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
                                     verify_top=verify_top,
                                     hypotheses=hypotheses,
                                     rgb_refine=rgb_refine, providers=providers, masks=masks, box_scales=box_scales,
-                                    batch_size=batch_size, mask_weight=mask_weight)
+                                    batch_size=batch_size, mask_weight=mask_weight, mask_band=mask_band)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
                         refiner_model=refiner_model, templates_dir=templates_dir, scorer_model=scorer_model,
