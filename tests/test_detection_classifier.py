@@ -504,6 +504,16 @@ def test_mask_head_learns_the_visible_masks_of_rendered_objects(tmp_path):
             if len(ys):  # within the crop square of the detection's box
                 side = 1.2 * max(row.w, row.h) + 2
                 assert abs((xs_.mean()) - (row.x + row.w / 2)) < side / 2 and abs(ys.mean() - (row.y + row.h / 2)) < side / 2
+    # --mask-boxes: each box becomes its mask's bounding box
+    stage.main({"min_score": 0.1, "mask_boxes": True}, SAMPLES, "test", tmp_path / "mb.json", scene_ids=[1],
+               detector=TwoBoxDetector(), classifier=clf, progress=False)
+    mb = bop.read_detections(tmp_path / "mb.json")
+    for row in mb.itertuples():
+        mk = decode_segmentation(row.segmentation, (480, 640))
+        if mk.sum() >= 20:
+            ys, xs_ = np.nonzero(mk)
+            np.testing.assert_allclose([row.x, row.y, row.w, row.h],
+                                       [xs_.min(), ys.min(), xs_.max() + 1 - xs_.min(), ys.max() + 1 - ys.min()])
     # ... which cosy estimate reads as masks
     r = _run(["estimate", "--dataset", SAMPLES, "--split", "test", "--scene-id", 1, "--detections",
               tmp_path / "d_auto.json", "--out", tmp_path / "est"])

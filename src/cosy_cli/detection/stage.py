@@ -70,6 +70,7 @@ CONFS = {
         "refine_boxes": 1,       # classifier with a box head: passes that move each box onto its object (0: off)
         "masks": "auto",         # classifier with a mask head: auto = each detection gets its segmentation | none
         "mask_threshold": 0.5,   # a pixel belongs to the mask when the mask head's probability is at least this
+        "mask_boxes": False,     # with masks: each box becomes its mask's bounding box (tighter than the box head's)
     },
 }
 
@@ -88,6 +89,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["refine_boxes"] = int(c["refine_boxes"])
         c["masks"] = "none" if c["masks"] in (None, False) else str(c["masks"]).lower()
         c["mask_threshold"] = float(c["mask_threshold"])
+        c["mask_boxes"] = bool(c["mask_boxes"]) if not isinstance(c["mask_boxes"], str) else \
+            c["mask_boxes"].strip().lower() in ("1", "true", "yes", "on")
         c["classifier"] = "none" if c["classifier"] in (None, False) else str(c["classifier"])
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None
@@ -243,25 +246,34 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
     return dets, times
 
 
-def segmentations_of_masks(dets: pd.DataFrame, margin: float, threshold: float) -> pd.DataFrame:
+def segmentations_of_masks(dets: pd.DataFrame, margin: float, threshold: float, mask_boxes: bool = False,
+                           min_pixels: int = 20) -> pd.DataFrame:
     """``dets`` with the private ``_mask`` column of :func:`run_detector` turned into each row's
     ``segmentation`` (RLE of the mask head's output pasted into the image, thresholded at
     ``threshold``; :func:`~cosy_cli.detection.classifier.paste_masks`) and dropped. Run it on the
-    rows that are kept: pasting and encoding cost about a millisecond per row."""
+    rows that are kept: pasting and encoding cost about a millisecond per row. ``mask_boxes``:
+    each row's box becomes the bounding box of its mask (x, y, w, h px, w = x_max + 1 - x_min),
+    where the mask has at least ``min_pixels`` pixels."""
     if "_mask" not in dets:
         return dets
     from ..io.masks import encode_mask
     from .classifier import paste_masks
 
     dets = dets.copy()
-    segs = []
+    segs, boxes = [], {}
     for info in dets["_mask"]:
         if not isinstance(info, tuple):
             segs.append(None)
             continue
         probs, xyxy, shape = info
-        segs.append(encode_mask(paste_masks(probs[None], np.asarray(xyxy)[None], margin, shape, threshold)[0]))
+        m = paste_masks(probs[None], np.asarray(xyxy)[None], margin, shape, threshold)[0]
+        segs.append(encode_mask(m))
+        if mask_boxes and m.sum() >= min_pixels:
+            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+            boxes[len(segs) - 1] = (cols[0], rows[0], cols[-1] + 1 - cols[0], rows[-1] + 1 - rows[0])
     dets["segmentation"] = pd.Series(segs, index=dets.index, dtype=object)
+    for i, b in boxes.items():
+        dets.iloc[i, [dets.columns.get_loc(c) for c in ("x", "y", "w", "h")]] = [float(v) for v in b]
     return dets.drop(columns=["_mask"])
 
 
@@ -373,8 +385,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         inputs["classifier"] = ({"path": str(Path(clf.path).resolve()), "sha1": file_sha1(clf.path)}
                                 if hasattr(clf, "path") else {"object": f"{type(clf).__module__}.{type(clf).__qualname__}"})
     if not getattr(clf, "has_mask_head", False):  # recorded only where they apply: earlier outputs stay up to date
-        conf.pop("masks", None)
-        conf.pop("mask_threshold", None)
+        for k in ("masks", "mask_threshold", "mask_boxes"):
+            conf.pop(k, None)
     if reuse_existing_file(out, doc_path, "detect", overwrite, conf, inputs, log=log):
         return None
 
@@ -400,7 +412,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         dets = keep_best(dets, 0.0 if clf is not None else conf["min_score"], conf["max_per_image"],
                          conf["max_per_object"])
         dets = segmentations_of_masks(dets, getattr(getattr(clf, "config", None), "margin", 1.0),
-                                      conf.get("mask_threshold", 0.5))
+                                      conf.get("mask_threshold", 0.5), conf.get("mask_boxes", False))
         what = f"detector {model if model is not None else inputs['model']['object']}"
         if clf is not None:
             what += f" + box classifier {getattr(clf, 'path', type(clf).__qualname__)}"
