@@ -20,7 +20,8 @@ STAGE_NAMES = ["detect", "estimate", "match", "refine", "evaluate", "viz"]
               help="default (best available), paper (networks, RGB only), fast (fewer hypotheses, no VSD) or "
                    "onboarded (boxes of a detector trained from meshes: 100 proposals down to score 0.01, two box-head "
                    "passes of the classifier, the best box of each "
-                   "object per image, each hypothesis also verified nearer and farther).")
+                   "object per image, each hypothesis also verified nearer and farther; the classifier's masks "
+                   "where it has a mask head).")
 @click.option("--detections", type=click.Path(path_type=Path), default=None,
               help="Detections made elsewhere (BOP detections JSON or COCO results).")
 @click.option("--coco-images", type=click.Path(path_type=Path), default=None,

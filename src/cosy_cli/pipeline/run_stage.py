@@ -54,7 +54,8 @@ CONFS: dict[str, dict] = {
     # many right boxes score low and fit loosely. Up to 100 proposals down to score 0.01 for the box
     # classifier, whose box head moves each twice; the best box of each object in each image (one
     # instance of each object per image, as in LM-O and YCB-V); each template hypothesis also verified
-    # nearer and farther. Chosen on the odd lmo_dev scenes (docs/results.md).
+    # nearer and farther; a classifier with a mask head adds each detection's mask (the detect default), which
+    # the verification uses. Chosen on the odd lmo_dev scenes (docs/results.md).
     "onboarded": {"detect": {"min_score": 0.01, "max_per_image": 100, "refine_boxes": 2, "max_per_object": 1},
                   "estimate": {"box_scales": [0.87, 1.0, 1.15]}, "match": "paper", "refine": None,
                   "evaluate": "bop19"},
