@@ -312,6 +312,21 @@ def test_box_deltas_are_edge_offsets_in_crop_units():
     np.testing.assert_allclose(xyxy_continuous_to_xywh(xywh_to_xyxy_continuous(xywh)), xywh)
 
 
+def _rendered_batch(seed: int, **conf) -> dict:
+    """Six rendered images of the sample objects from the classifier's training sampler (seeded)."""
+    from cosy_cli.detection import classifier_train as ct
+    from cosy_cli.detection.train import load_dataset_objects
+
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    meshes, K, size = load_dataset_objects(SAMPLES, None, None)
+    c = ct.resolve_conf(None, soft_targets="none", background_per_image=0, reuse=1, crop=64, **conf)
+    sampler = ct.CropSampler(meshes, K, size, c, IDS, seed, appearance=None)
+    try:
+        return sampler.gen.batch(6)
+    finally:
+        sampler.close()
+
+
 def test_box_head_learns_to_move_jittered_boxes_onto_rendered_objects(tmp_path):
     """The whole box refinement chain, trained and applied: crops of jittered boxes of rendered
     objects and their targets (the training sampler's code), a box-head classifier overfit on them
@@ -324,17 +339,8 @@ def test_box_head_learns_to_move_jittered_boxes_onto_rendered_objects(tmp_path):
     from cosy_cli.detection import classifier_train as ct
     from cosy_cli.detection.boxes import box_iou
     from cosy_cli.detection.classifier import xyxy_continuous_to_xywh
-    from cosy_cli.detection.train import load_dataset_objects
 
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    meshes, K, size = load_dataset_objects(SAMPLES, None, None)
-    conf = ct.resolve_conf(None, jitter=0.12, box_head=True, soft_targets="none", background_per_image=0,
-                           reuse=1, crop=64)
-    sampler = ct.CropSampler(meshes, K, size, conf, IDS, 5, appearance=None)
-    try:
-        b = sampler.gen.batch(6)
-    finally:
-        sampler.close()
+    b = _rendered_batch(5, jitter=0.12, box_head=True)
     rng = np.random.default_rng(0)
     imgs, gts, jits, xs, ds = [], [], [], [], []
     for img, boxes in zip(b["images"], b["boxes"]):
@@ -429,18 +435,9 @@ def test_mask_head_learns_the_visible_masks_of_rendered_objects(tmp_path):
 
     from cosy_cli.detection import classifier_train as ct
     from cosy_cli.detection.classifier import crop_masks, paste_masks, xyxy_continuous_to_xywh
-    from cosy_cli.detection.train import load_dataset_objects
     from cosy_cli.io.masks import decode_segmentation
 
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    meshes, K, size = load_dataset_objects(SAMPLES, None, None)
-    conf = ct.resolve_conf(None, jitter=0.08, mask_head=True, soft_targets="none", background_per_image=0,
-                           reuse=1, crop=64)
-    sampler = ct.CropSampler(meshes, K, size, conf, IDS, 7, appearance=None)
-    try:
-        b = sampler.gen.batch(6)
-    finally:
-        sampler.close()
+    b = _rendered_batch(7, jitter=0.08, mask_head=True)
     rng = np.random.default_rng(0)
     cases, xs, ms = [], [], []
     for img, boxes, inst, ids in zip(b["images"], b["boxes"], b["instance"], b["instance_ids"]):

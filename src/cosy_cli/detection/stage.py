@@ -284,7 +284,7 @@ def add_masks(dets: pd.DataFrame, ds: BopDataset, classifier, threshold: float, 
     (the box, label and score stay). Returns (the table, the number of masks added)."""
     from ..console import progress as progress_bar
     from ..io.masks import encode_mask
-    from .classifier import paste_masks, xywh_to_xyxy_continuous
+    from .classifier import paste_masks
 
     dets = dets.copy()
     if "segmentation" not in dets:

@@ -77,9 +77,6 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
     (max 100 detections per image)."""
     from importlib.metadata import version
 
-    from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
-
     scene_ids = ds.scene_ids if scene_ids is None else [int(s) for s in scene_ids]
     gt = _gt_boxes(ds, scene_ids)
     img = _image_index(ds, scene_ids)
@@ -109,16 +106,7 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
            "min_visib_fract": float(min_visib_fract), "tool": f"pycocotools {version('pycocotools')}"}
     per_ap = per_ap50 = per_ci = {}
     if res and (~crowd).any():
-        with contextlib.redirect_stdout(io.StringIO()):
-            coco_gt = COCO()
-            coco_gt.dataset = gt_doc
-            coco_gt.createIndex()
-            coco_dt = coco_gt.loadRes(res)
-            E = COCOeval(coco_gt, coco_dt, "bbox")
-            E.params.imgIds = sorted(img.values())
-            E.evaluate()
-            E.accumulate()
-            E.summarize()
+        E = _cocoeval(gt_doc, res, sorted(img.values()), "bbox")
         s = E.stats
         out.update(AP=float(s[0]), AP50=float(s[1]), AP75=float(s[2]), AR100=float(s[8]))
         prec = E.eval["precision"]  # (T iou thresholds, R recall points, K categories, A areas, M max dets)
@@ -146,6 +134,24 @@ def coco_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_fract:
     return out
 
 
+def _cocoeval(gt_doc: dict, res: list, img_ids: list, iou_type: str):
+    """pycocotools' COCOeval of results ``res`` against the COCO dataset ``gt_doc`` on images
+    ``img_ids``, evaluated, accumulated and summarised (its printing silenced)."""
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        coco_gt = COCO()
+        coco_gt.dataset = gt_doc
+        coco_gt.createIndex()
+        E = COCOeval(coco_gt, coco_gt.loadRes(res), iou_type)
+        E.params.imgIds = img_ids
+        E.evaluate()
+        E.accumulate()
+        E.summarize()
+    return E
+
+
 def _gt_masks(ds: BopDataset, gt: pd.DataFrame) -> list | None:
     """The visible mask (BOP ``mask_visib/`` PNG) of each GT row, as a COCO RLE; None when one is missing."""
     import cv2
@@ -170,8 +176,6 @@ def coco_mask_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_f
     against the GT visible masks (``mask_visib/``) of ``scene_ids``: {"AP", "AP50", "AP75",
     "AR100"}; None when a detection lacks a segmentation or a GT instance its mask. Crowd
     (ignored) instances as in :func:`coco_ap`."""
-    from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
 
     from ..io.masks import SegmentationError, decode_segmentation
 
@@ -208,20 +212,10 @@ def coco_mask_ap(dets: pd.DataFrame, ds: BopDataset, scene_ids=None, min_visib_f
         rle["counts"] = rle["counts"].decode("ascii")
         res.append({"image_id": img[key], "category_id": int(row.obj_id), "segmentation": rle,
                     "score": float(row.score)})
-    with contextlib.redirect_stdout(io.StringIO()):
-        coco_gt = COCO()
-        coco_gt.dataset = {"images": [{"id": n, "file_name": f"{s:06d}/{i:06d}", "height": shape.get((s, i), any_shape)[0],
-                                       "width": shape.get((s, i), any_shape)[1]} for (s, i), n in img.items()],
-                           "categories": [{"id": int(o), "name": f"obj_{int(o):06d}"} for o in obj_ids],
-                           "annotations": anns}
-        coco_gt.createIndex()
-        coco_dt = coco_gt.loadRes(res)
-        E = COCOeval(coco_gt, coco_dt, "segm")
-        E.params.imgIds = sorted(img.values())
-        E.evaluate()
-        E.accumulate()
-        E.summarize()
-    s = E.stats
+    gt_doc = {"images": [{"id": n, "file_name": f"{s:06d}/{i:06d}", "height": shape.get((s, i), any_shape)[0],
+                          "width": shape.get((s, i), any_shape)[1]} for (s, i), n in img.items()],
+              "categories": [{"id": int(o), "name": f"obj_{int(o):06d}"} for o in obj_ids], "annotations": anns}
+    s = _cocoeval(gt_doc, res, sorted(img.values()), "segm").stats
     return {"AP": float(s[0]), "AP50": float(s[1]), "AP75": float(s[2]), "AR100": float(s[8])}
 
 
