@@ -27,7 +27,7 @@ def cli(quiet: bool, verbose: bool) -> None:
 
 # Each module cosy_cli.cli.cmd_<name> defines COMMANDS, a list of click commands.
 COMMAND_MODULES = ["synth", "validate", "symmetries", "templates", "detect", "estimate", "match", "refine", "evaluate",
-                   "train", "run", "viz", "gt_info", "new_dataset", "doctor"]
+                   "train", "onboard", "run", "viz", "gt_info", "new_dataset", "doctor"]
 
 
 def _register() -> None:
