@@ -3,8 +3,8 @@
 What `cosy run --config onboarded` needs for objects nobody trained a detector for, from their
 meshes alone (no real image): the detector (``cosy train detector --preset real``) and the box
 classifier with its box and mask heads (``cosy train classifier --preset real``), each in its own
-process at the same time (on 2 CPU cores the pair took 46 min side by side, where one after the
-other took 31 + 51 min), then both exported. With ``long``, the detector's training then
+process at the same time (on 2 CPU cores the pair took 46-60 min side by side, where one after
+the other took 31 + 51 min), then both exported. With ``long``, the detector's training then
 continues at 480 x 352 px for ``long_iterations`` more steps (real LM-O AP50 about 0.16 -> 0.25
 for the detector alone, 32-48 min more on 2 cores).
 
