@@ -230,36 +230,33 @@ def gt_mask_detections(root: Path, split: str, work: Path, min_visib: float = 0.
 def classifier_mask_detections(root: Path, split: str, work: Path, classifier: Path, scene_ids=None,
                                min_visib: float = 0.1) -> Path:
     """A detections JSON of the visible GT boxes (as --from-gt) whose ``segmentation`` is what a box
-    classifier's mask head (``cosy train classifier --preset real``) sees in each box: its masks with
-    perfect boxes, to compare with the GT masks (:func:`gt_mask_detections`). Prints the mean IoU of
-    those masks with the GT visible masks."""
-    from cosy_cli.detection.classifier import OnnxClassifier, paste_masks
+    classifier's mask head (``cosy train classifier --preset real``) sees in each box (what ``cosy
+    detect --from-gt --classifier`` adds): its masks with perfect boxes, to compare with the GT
+    masks (:func:`gt_mask_detections`). Prints the mean IoU of those masks with the GT visible masks."""
+    from cosy_cli.detection import importers
+    from cosy_cli.detection.classifier import OnnxClassifier
+    from cosy_cli.detection.stage import add_masks
     from cosy_cli.io.dataset import BopDataset
-    from cosy_cli.io.masks import decode_segmentation, encode_mask
+    from cosy_cli.io.masks import decode_segmentation
 
-    gt_dets = json.loads(gt_mask_detections(root, split, work, min_visib).read_text())
     clf = OnnxClassifier(classifier)
     if not clf.has_mask_head:
         raise SystemExit(f"{classifier} has no mask head")
     ds = BopDataset(root, split)
-    by_image: dict = {}
-    for d in gt_dets:
-        if scene_ids is None or d["scene_id"] in scene_ids:
-            by_image.setdefault((d["scene_id"], d["image_id"]), []).append(d)
-    out, ious = [], []
-    for (sid, im), dets in sorted(by_image.items()):
-        rgb = ds.read_rgb(sid, im)
-        boxes = np.array([d["bbox"] for d in dets], np.float64)
-        _, xyxy, masks = clf.classify_refine_masks(rgb, boxes, passes=0)
-        for d, m in zip(dets, paste_masks(masks, xyxy, clf.config.margin, rgb.shape[:2])):
-            gt = decode_segmentation(d["segmentation"], rgb.shape[:2])
-            ious.append((m & gt).sum() / max((m | gt).sum(), 1))
-            out.append(dict(d, segmentation=encode_mask(m)))
+    gt = importers.read_detections_any(gt_mask_detections(root, split, work, min_visib), ds)
+    if scene_ids is not None:
+        gt = gt[gt["scene_id"].isin(scene_ids).to_numpy()].reset_index(drop=True)
+    dets, _ = add_masks(gt.assign(segmentation=None), ds, clf, 0.5, log=lambda *_: None, progress=False)
+    ious = []
+    for g, d in zip(gt.itertuples(), dets.itertuples()):
+        shape = tuple(g.segmentation["size"])
+        m, t = decode_segmentation(d.segmentation, shape), decode_segmentation(g.segmentation, shape)
+        ious.append((m & t).sum() / max((m | t).sum(), 1))
     print(f"classifier masks on the GT boxes: mean IoU with the GT visible masks {np.mean(ious):.3f} "
           f"(median {np.median(ious):.3f}, {len(ious)} instances; >= 0.5: {np.mean(np.array(ious) >= 0.5):.2f})",
           flush=True)
     path = work / f"{root.name}_{split}_{Path(classifier).stem}_masks.json"
-    path.write_text(json.dumps(out))
+    importers.write_detections(path, dets)
     return path
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..conf import merge_conf
+from ..conf import as_bool, merge_conf
 from ..errors import CosyError
 from ..io import manifest
 from ..io.atomic import write_json
@@ -89,8 +89,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["refine_boxes"] = int(c["refine_boxes"])
         c["masks"] = "none" if c["masks"] in (None, False) else str(c["masks"]).lower()
         c["mask_threshold"] = float(c["mask_threshold"])
-        c["mask_boxes"] = bool(c["mask_boxes"]) if not isinstance(c["mask_boxes"], str) else \
-            c["mask_boxes"].strip().lower() in ("1", "true", "yes", "on")
+        c["mask_boxes"] = as_bool(c["mask_boxes"], "mask_boxes", "detect")
         c["classifier"] = "none" if c["classifier"] in (None, False) else str(c["classifier"])
     except (TypeError, ValueError) as e:
         raise CosyError(f"detect settings: {e}") from None

@@ -281,9 +281,7 @@ class Estimator:
     @property
     def verifier(self):
         if self._verifier is None:
-            from .training_free.verify import Verifier
-
-            from .training_free.verify import VerifyConf
+            from .training_free.verify import Verifier, VerifyConf
 
             self._verifier = Verifier(self.db, VerifyConf(w_mask=float(self.conf.get("mask_weight", 2.0))),
                                       scorer=self.scorer)
