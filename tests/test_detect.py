@@ -315,6 +315,56 @@ def test_model_branch_with_a_real_exported_detector(tmp_path, ds):
     assert doc["inputs"]["model"]["sha1"] and doc["time_per_image_s"] > 0
 
 
+def test_tile_windows_cover_the_image_and_overlap():
+    from cosy_cli.detection.network import tile_windows
+
+    for n in (2, 3, 4):
+        w = np.array(tile_windows(640, 480, n))
+        assert len(w) == n * n and (w[:, 0] >= 0).all() and (w[:, 2] <= 640).all() and (w[:, 3] <= 480).all()
+        cover = np.zeros((480, 640), bool)
+        for x0, y0, x1, y1 in w:
+            cover[y0:y1, x0:x1] = True
+        assert cover.all()
+        assert np.allclose(w[:, 2] - w[:, 0], 640 * 1.25 / n, atol=1)  # (1 + overlap) / n of the image
+        xs = np.unique(w[:, 0])
+        assert (np.diff(xs) < (w[0, 2] - w[0, 0])).all()  # neighbours overlap
+    with pytest.raises(ValueError):
+        tile_windows(640, 480, 0)
+
+
+def test_tiles_find_small_objects_that_the_whole_image_misses(tmp_path, ds):
+    """The shipped detector on the sample images shrunk to half size in a corner of a grey canvas:
+    with tiles=2 its boxes of the full-size images are found again (same label, IoU > 0.5) more often;
+    on the full-size images every box of the plain pass is kept or replaced by a better one."""
+    import cv2
+
+    from cosy_cli.detection.boxes import box_iou
+    from cosy_cli.detection.network import OnnxDetector
+
+    det = OnnxDetector(stage.SHIPPED_DETECTOR)
+    found = {0: [], 2: []}
+    for im in ds.image_ids(1)[:4]:
+        rgb = ds.read_rgb(1, im)
+        b0, s0, o0 = det.detect(rgb, 0.3, 100)
+        b2, s2, o2 = det.detect(rgb, 0.3, 100, tiles=2)
+        same = (box_iou(b0, b2) > 0.5) & (o0[:, None] == o2[None]) & (s2[None] >= s0[:, None] - 1e-9)
+        assert same.any(1).all()
+        assert ((b2[:, 0] + b2[:, 2]) <= 640).all() and ((b2[:, 1] + b2[:, 3]) <= 480).all()
+        small = np.full_like(rgb, 128)
+        small[:240, :320] = cv2.resize(rgb, (320, 240), interpolation=cv2.INTER_AREA)
+        for t in (0, 2):
+            b, _, o = det.detect(small, 0.3, 100, tiles=t)
+            hit = (box_iou(b0 / 2, b) > 0.5) & (o0[:, None] == o[None]) if len(b) else np.zeros((len(b0), 1), bool)
+            found[t].extend(hit.any(1))
+    assert np.mean(found[2]) >= np.mean(found[0]) + 0.15, (np.mean(found[0]), np.mean(found[2]))
+    out = tmp_path / "d.json"
+    r = _run(["detect", "--scene", SCENE, "--tiles", 2, "--classifier", "none", "--out", out, "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "d.meta.json").read_text())["conf"]["tiles"] == 2
+    r = _run(["detect", "--scene", SCENE, "--classifier", "none", "--out", tmp_path / "e.json", "--quiet"])
+    assert "tiles" not in json.loads((tmp_path / "e.meta.json").read_text())["conf"]  # the default is not recorded
+
+
 # ------------------------------------------------------------------------------------------------
 # COCO AP and confusion
 # ------------------------------------------------------------------------------------------------

@@ -86,22 +86,42 @@ class OnnxDetector:
         peaks, ltrb = self.session.run(self._outputs, {self._input: np.ascontiguousarray(x, dtype=np.float32)})
         return peaks, ltrb
 
-    def detect(self, rgb: np.ndarray, min_score: float = 0.3, max_per_image: int = 30, nms_iou: float = 0.5
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def detect(self, rgb: np.ndarray, min_score: float = 0.3, max_per_image: int = 30, nms_iou: float = 0.5,
+               tiles: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Detections in one image.
 
         rgb: uint8 (H, W, 3) RGB of any size. Returns boxes (N, 4) float64 [x, y, w, h] px of this
         image (see the module docstring), scores (N,) float64 in [0, 1], obj_ids (N,) int64;
         per-class NMS at IoU ``nms_iou``, scores >= ``min_score``, at most ``max_per_image``,
-        sorted by decreasing score."""
+        sorted by decreasing score.
+
+        tiles: 0 = the whole image only; n >= 2 = also an n x n grid of overlapping windows
+        (:func:`tile_windows`), each resized to the input size (objects seen about n times larger:
+        small and far objects), in the same batch; a window's boxes that touch one of its edges
+        inside the image (an object cut by the window) are dropped, the whole image's pass sees
+        those; all boxes then share one per-class NMS."""
         from .model import decode
 
-        H, W = np.asarray(rgb).shape[:2]
-        peaks, ltrb = self.raw(self.preprocess(rgb))
-        xyxy, scores, cls = decode(peaks[0], ltrb[0], self.stride, k=max(TOP_K, int(max_per_image)),
-                                   min_score=float(min_score))
-        sx, sy = W / self.input_size[0], H / self.input_size[1]
-        xyxy = xyxy * np.array([sx, sy, sx, sy])
+        rgb = np.asarray(rgb)
+        H, W = rgb.shape[:2]
+        windows = [(0, 0, W, H)] + (tile_windows(W, H, int(tiles)) if int(tiles) >= 2 else [])
+        x = np.concatenate([self.preprocess(rgb[y0:y1, x0:x1]) for x0, y0, x1, y1 in windows])
+        peaks, ltrb = self.raw(x)
+        k = max(TOP_K, int(max_per_image))
+        parts = []
+        for b, (x0, y0, x1, y1) in enumerate(windows):
+            xyxy, scores, cls = decode(peaks[b], ltrb[b], self.stride, k=k, min_score=float(min_score))
+            sx, sy = (x1 - x0) / self.input_size[0], (y1 - y0) / self.input_size[1]
+            xyxy = xyxy * np.array([sx, sy, sx, sy]) + np.array([x0, y0, x0, y0], dtype=np.float64)
+            if b:  # a tile: drop what its inner edges cut (within 1 % of the window)
+                m = 0.01 * max(x1 - x0, y1 - y0)
+                cut = (((xyxy[:, 0] <= x0 + m) & (x0 > 0)) | ((xyxy[:, 2] >= x1 - m) & (x1 < W))
+                       | ((xyxy[:, 1] <= y0 + m) & (y0 > 0)) | ((xyxy[:, 3] >= y1 - m) & (y1 < H)))
+                xyxy, scores, cls = xyxy[~cut], scores[~cut], cls[~cut]
+            parts.append((xyxy, scores, cls))
+        xyxy = np.concatenate([p[0] for p in parts]).reshape(-1, 4)
+        scores = np.concatenate([p[1] for p in parts])
+        cls = np.concatenate([p[2] for p in parts]).astype(np.int64)
         xyxy[:, [0, 2]] = np.clip(xyxy[:, [0, 2]], 0.0, W)
         xyxy[:, [1, 3]] = np.clip(xyxy[:, [1, 3]], 0.0, H)
         # continuous extents [x1, x2) -> BOP pixel-index boxes: x = x1, w = (x2 - 1) - x1
@@ -117,4 +137,16 @@ class OnnxDetector:
         return boxes[keep], scores[keep], obj_ids
 
 
-__all__ = ["OnnxDetector"]
+def tile_windows(width: int, height: int, n: int, overlap: float = 0.25) -> list[tuple[int, int, int, int]]:
+    """An n x n grid of windows (x0, y0, x1, y1) px covering a width x height image, each
+    (1 + ``overlap``) / n of the image's width and height (so neighbours overlap and an object up
+    to about ``overlap`` / n of the image wide lies whole in one of them), row by row."""
+    if n < 1:
+        raise ValueError(f"tiles: expected n >= 1, got {n}")
+    ww, wh = min(width, round(width * (1 + overlap) / n)), min(height, round(height * (1 + overlap) / n))
+    xs = np.round(np.linspace(0, width - ww, n)).astype(int) if n > 1 else np.array([0])
+    ys = np.round(np.linspace(0, height - wh, n)).astype(int) if n > 1 else np.array([0])
+    return [(int(x), int(y), int(x) + ww, int(y) + wh) for y in ys for x in xs]
+
+
+__all__ = ["OnnxDetector", "tile_windows"]

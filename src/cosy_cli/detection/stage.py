@@ -71,6 +71,7 @@ CONFS = {
         "masks": "auto",         # classifier with a mask head: auto = each detection gets its segmentation | none
         "mask_threshold": 0.5,   # a pixel belongs to the mask when the mask head's probability is at least this
         "mask_boxes": False,     # with masks: each box becomes its mask's bounding box (tighter than the box head's)
+        "tiles": 0,              # model: also an n x n grid of overlapping windows at n x the zoom (0: the whole image only)
     },
 }
 
@@ -87,6 +88,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["label_mix"], c["label_ratio"] = float(c["label_mix"]), float(c["label_ratio"])
         c["background"] = float(c["background"])
         c["refine_boxes"] = int(c["refine_boxes"])
+        c["tiles"] = int(c["tiles"])
         c["masks"] = "none" if c["masks"] in (None, False) else str(c["masks"]).lower()
         c["mask_threshold"] = float(c["mask_threshold"])
         c["mask_boxes"] = as_bool(c["mask_boxes"], "mask_boxes", "detect")
@@ -101,10 +103,10 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError(f"detect settings: masks must be auto or none and mask_threshold in (0, 1), got "
                         f"{c['masks']!r}, {c['mask_threshold']}")
     if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0
-            and 0 <= c["refine_boxes"] <= 5):
+            and 0 <= c["refine_boxes"] <= 5 and c["tiles"] in (0, 2, 3, 4)):
         raise CosyError("detect settings out of range (label_mix in [0, 1], label_ratio in (0, 1], background >= 0, "
-                        f"refine_boxes 0-5): {c['label_mix']}, {c['label_ratio']}, {c['background']}, "
-                        f"{c['refine_boxes']}")
+                        f"refine_boxes 0-5, tiles 0, 2, 3 or 4): {c['label_mix']}, {c['label_ratio']}, "
+                        f"{c['background']}, {c['refine_boxes']}, {c['tiles']}")
     return c
 
 
@@ -175,9 +177,10 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
     with_masks = classifier is not None and conf.get("masks", "auto") == "auto" and bool(
         getattr(classifier, "has_mask_head", False))
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
+    tiles = {"tiles": conf["tiles"]} if conf.get("tiles", 0) else {}  # detectors without tiles keep working
     if images:  # one untimed warm-up call: the runtime's first call allocates (seconds), not per-image work
         rgb0 = ds.read_rgb(*images[0])
-        b0, _, _ = detector.detect(rgb0, conf["min_score"], conf["max_per_image"], conf["nms_iou"])
+        b0, _, _ = detector.detect(rgb0, conf["min_score"], conf["max_per_image"], conf["nms_iou"], **tiles)
         if classifier is not None:
             classifier.classify(rgb0, np.asarray(b0, dtype=np.float64).reshape(-1, 4)[:1] if len(b0) else
                                 np.array([[0.0, 0.0, 31.0, 31.0]]))
@@ -185,7 +188,8 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
     for sid, im in progress_bar(images, desc="detect", unit="image", enabled=progress):
         rgb = ds.read_rgb(sid, im)
         t0 = time.perf_counter()
-        boxes, scores, labels = detector.detect(rgb, conf["min_score"], conf["max_per_image"], conf["nms_iou"])
+        boxes, scores, labels = detector.detect(rgb, conf["min_score"], conf["max_per_image"], conf["nms_iou"],
+                                                **tiles)
         dt = time.perf_counter() - t0
         times.append(dt)
         boxes = xyxy_to_xywh(clip_xyxy(boxes, rgb.shape[1], rgb.shape[0]))
@@ -386,6 +390,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     if not getattr(clf, "has_mask_head", False):  # recorded only where they apply: earlier outputs stay up to date
         for k in ("masks", "mask_threshold", "mask_boxes"):
             conf.pop(k, None)
+    if source != "model" or not conf["tiles"]:  # recorded only where it applies, as the masks' settings
+        conf.pop("tiles", None)
     if reuse_existing_file(out, doc_path, "detect", overwrite, conf, inputs, log=log):
         return None
 
