@@ -41,7 +41,7 @@ def onboard(models_dir, camera, backgrounds, out, long_, long_iterations, detect
     (boxes moved onto the objects, masks) on domain-randomised renders, side by side, and export
     both for `cosy run --model OUT/detector.onnx --classifier OUT/classifier.onnx --config onboarded`.
 
-    On 2 CPU cores, 8 objects: 46-60 min (both presets side by side; --long adds 32-48 min).
+    On 2 CPU cores, 8 objects: 46-109 min (both presets side by side, measured; --long adds 32-48 min).
     Ctrl-C saves both runs' checkpoints; --resume continues.
     """
     from ..detection import onboard as stage
