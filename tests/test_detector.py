@@ -536,6 +536,35 @@ def test_clutter_shapes_and_a_cluttered_backdrop(meshes):
         resolve_conf(None, backdrop=[0.5, 6, 2])
 
 
+def test_camera_distance_and_floating_depth_ranges(meshes):
+    """The distance range of the rendered scenes (a user's working distance): table scenes seen from
+    farther, floating objects within the given depths; the defaults are passed as before (nothing)."""
+    from cosy_cli.detection.data import DetectionSampleGenerator
+    from cosy_cli.detection.train import appearance_kwargs, resolve_conf
+
+    m, K, size = meshes
+
+    def depths(**kw):
+        gen = DetectionSampleGenerator(m, K, size, (160, 120), seed=7, max_objects=3, **kw)
+        z = np.concatenate([T[:, 2, 3] for T in gen.batch(8)["T_cam_obj"]])
+        gen.close()
+        return z
+
+    near, far = depths(p_table=1.0), depths(p_table=1.0, camera_distance=(1600.0, 1800.0))
+    assert np.median(near) < 1000 and np.median(far) > 1300, (np.median(near), np.median(far))
+    z = depths(p_table=0.0, float_depth=(1300.0, 1400.0))
+    assert len(z) and z.min() >= 1300 * 0.9 - 1e-6 and z.max() <= 1400 * 1.1 + 1e-6  # a look-alike pair: +-10 %
+    z = depths(p_table=0.0)
+    assert z.min() >= 250 * 0.9 and z.max() <= 1200 * 1.1
+    assert "camera_distance" not in appearance_kwargs(resolve_conf("real"), log=lambda s: None)
+    c = resolve_conf("real", camera_distance=[500, 2000], float_depth=[400, 1800])
+    kw = appearance_kwargs(c, log=lambda s: None)
+    assert kw["camera_distance"] == (500.0, 2000.0) and kw["float_depth"] == (400.0, 1800.0)
+    for bad in ([900, 500], [0, 500], [500]):
+        with pytest.raises(CosyError, match="camera_distance"):
+            resolve_conf("real", camera_distance=bad)
+
+
 def test_photographs_as_backgrounds(meshes, tmp_path):
     """--backgrounds: random windows of the user's photographs fill the background of a share of the
     images (the objects and their labels unchanged); the folder is read once, shrunk."""

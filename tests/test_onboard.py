@@ -46,13 +46,17 @@ def test_onboard_trains_both_side_by_side_exports_and_resumes(tmp_path):
     r = _run(base + ["--detector-iterations", 3, "--classifier-iterations", 3, "--resume"])
     assert r.exit_code == 0, r.output
     assert _step(out / "detector") == 3 and _step(out / "classifier") == 3
-    # --long: the detector continues at 480 x 352 from the first run's weights
+    # --long: the detector continues at 480 x 352 from the first run's weights; --distance reaches every run
     r = _run(base + ["--detector-iterations", 1, "--classifier-iterations", 1, "--long", "--long-iterations", 1,
-                     "--overwrite"])
+                     "--distance", "400,1500", "--overwrite"])
     assert r.exit_code == 0, r.output
     assert _step(out / "detector480") == 1
     cfg = json.loads((out / "detector480" / "config.json").read_text())
     assert list(cfg["input_size"]) == [480, 352] and cfg["init"].endswith("detector320.onnx")
+    for run in ("detector", "classifier", "detector480"):
+        cfg = json.loads((out / run / "config.json").read_text())
+        assert cfg["camera_distance"] == [400.0, 1500.0] and cfg["float_depth"] == [400.0, 1500.0], run
+    assert "the camera 400-1500 mm from table scenes" in (out / "detector.md").read_text()
     assert "detector480" in json.loads((out / "onboard.json").read_text())["minutes"]
 
 
@@ -64,3 +68,7 @@ def test_onboard_reports_a_failed_training_and_bad_inputs(tmp_path):
     assert r.exit_code == 2 and "failed" in r.output and "Traceback" not in r.output, r.output
     r = _run(["onboard", "--models", tmp_path, "--out", tmp_path / "o2"])
     assert r.exit_code == 2 and "models_info.json" in r.output
+    r = _run(["onboard", "--models", SAMPLES / "models", "--out", tmp_path / "o3", "--distance", "900,500"])
+    assert r.exit_code == 2 and "NEAR <= FAR" in r.output, r.output
+    r = _run(["train", "scorer", "--models", SAMPLES / "models", "--out", tmp_path / "s.onnx", "--distance", "300,900"])
+    assert r.exit_code == 2 and "--distance is for the detector" in r.output, r.output

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from .. import console
-from .common import user_errors
+from .common import distance_range, user_errors
 
 
 @click.command("onboard")
@@ -30,13 +30,16 @@ from .common import user_errors
               help="Detector training steps [2500, the real preset's].")
 @click.option("--classifier-iterations", type=click.IntRange(min=1), default=None,
               help="Box classifier training steps [3000, the real preset's].")
+@click.option("--distance", callback=distance_range, default=None,
+              help="NEAR,FAR mm: how far the rendered objects are from the camera; match your camera's working "
+                   "distance [300,1100].")
 @click.option("--seed", type=int, default=None, help="Seed of both trainings [0].")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default=None, help="Where both train [cpu].")
 @click.option("--resume", is_flag=True, help="Continue the trainings of OUT where they stopped.")
 @click.option("--overwrite", is_flag=True, help="Delete OUT and start again.")
 @user_errors
-def onboard(models_dir, camera, backgrounds, out, long_, long_iterations, detector_iterations, classifier_iterations, seed, device,
-            resume, overwrite) -> None:
+def onboard(models_dir, camera, backgrounds, out, long_, long_iterations, detector_iterations, classifier_iterations, distance,
+            seed, device, resume, overwrite) -> None:
     """Onboard your objects from their meshes alone: train the 2D detector and its box classifier
     (boxes moved onto the objects, masks) on domain-randomised renders, side by side, and export
     both for `cosy run --model OUT/detector.onnx --classifier OUT/classifier.onnx --config onboarded`.
@@ -49,7 +52,8 @@ def onboard(models_dir, camera, backgrounds, out, long_, long_iterations, detect
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
     c = stage.resolve_conf("default", detector_iterations=detector_iterations,
-                           classifier_iterations=classifier_iterations, long=long_ or None, long_iterations=long_iterations, seed=seed, device=device)
+                           classifier_iterations=classifier_iterations, long=long_ or None,
+                           long_iterations=long_iterations, seed=seed, device=device, distance=distance)
     stage.main(c, models_dir, out, camera=camera, backgrounds=backgrounds, overwrite=overwrite, resume=resume,
                log=console.echo, progress=True)
 

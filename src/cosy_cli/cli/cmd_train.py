@@ -12,7 +12,7 @@ from pathlib import Path
 import click
 
 from .. import console
-from .common import user_errors
+from .common import distance_range, user_errors
 
 BACKBONES = [f"efficientnet-b{i}" for i in range(4)]
 
@@ -53,6 +53,12 @@ def _pairs(ctx, param, value):
         return out
     except ValueError:
         raise click.BadParameter(f"expected A:B[:WEIGHT],... such as 6:7:3,4:5, got {value!r}") from None
+
+
+def distance_settings(distance) -> dict:
+    """The detector's and classifier's scene settings of ``--distance NEAR,FAR`` (mm): the camera
+    that far from a table scene's objects, floating objects at those depths (nothing when None)."""
+    return {} if distance is None else {"camera_distance": list(distance), "float_depth": list(distance)}
 
 
 PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "classifier": ("default", "real"), "coarse": (),
@@ -107,6 +113,10 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
               help="Detector, classifier: a folder of photographs (png, jpg) without the objects (any scenes: your "
                    "workspace, a photo collection); random windows of them are the background of half the "
                    "rendered images, the largest gain on real photographs [procedural backgrounds only].")
+@click.option("--distance", callback=distance_range, default=None,
+              help="Detector, classifier: NEAR,FAR mm, how far the rendered objects are from the camera (table "
+                   "scenes: the camera's distance from them; floating objects: their depth); match your camera's "
+                   "working distance [300,1100; floating objects 250,1200].")
 @click.option("--iterations", type=click.IntRange(min=1), default=None, help="Total training steps [100000].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Samples per step [32; detector 16].")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None,
@@ -124,7 +134,8 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @user_errors
 def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
-          backgrounds, iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume, overwrite) -> None:
+          backgrounds, distance, iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume,
+          overwrite) -> None:
     """Train the KIND (coarse or refiner PoseNet, the 2D detector, its box classifier or the
     hypothesis scorer) on domain-randomised renders of the dataset's objects.
 
@@ -148,6 +159,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
                                f"{', '.join(PRESETS[kind]) or 'none'})")
     if backgrounds is not None and kind not in ("detector", "classifier"):
         raise click.UsageError("--backgrounds is for the detector and the box classifier")
+    if distance is not None and kind not in ("detector", "classifier"):
+        raise click.UsageError("--distance is for the detector and the box classifier")
     if kind == "scorer":
         if backbone is not None or crop is not None or input_size is not None or init is not None:
             raise click.UsageError("--backbone, --crop, --input and --init are not for the scorer")
@@ -179,7 +192,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         conf = classifier_train.resolve_conf(
             preset, backgrounds=backgrounds, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
             device=device, workers=workers, seed=seed, checkpoint_every=checkpoint_every, class_weights=class_weights,
-            confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets)
+            confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets, **distance_settings(distance))
         classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
                               progress=True, models_dir=models_dir, camera=camera)
         return
@@ -196,7 +209,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
                                       lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
                                       seed=seed, checkpoint_every=checkpoint_every, init=init,
                                       class_weights=class_weights, confusable=confusable, p_pair=p_pair,
-                                      backgrounds=backgrounds)
+                                      backgrounds=backgrounds, **distance_settings(distance))
         det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
                        progress=True, models_dir=models_dir, camera=camera)
         return

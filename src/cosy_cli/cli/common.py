@@ -139,3 +139,16 @@ def user_errors(fn):
             sys.exit(130)
 
     return verbosity_options(wrapper)
+
+
+def distance_range(ctx, param, value):
+    """click callback: NEAR,FAR (mm) of the rendered scenes of `cosy train` and `cosy onboard`."""
+    if value is None:
+        return None
+    try:
+        near, far = (float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected NEAR,FAR in mm such as 400,1500, got {value!r}") from None
+    if not 0 < near <= far:
+        raise click.BadParameter(f"expected 0 < NEAR <= FAR (mm), got {value!r}")
+    return [near, far]

@@ -12,10 +12,10 @@ One image (:meth:`DetectionSampleGenerator.batch`):
 - layout, "table" (probability ``p_table``): the objects rest on the plane z = 0 (each on a
   face of its convex hull picked with probability proportional to the face's area, a random
   yaw) at random places in a disc (footprints kept about apart: from spread out to cluttered),
-  seen by a camera 300-1100 mm from the cluster at 12-85 deg elevation, any azimuth, a roll of
+  seen by a camera ``camera_distance`` (300-1100) mm from the cluster at 12-85 deg elevation, any azimuth, a roll of
   +-15 deg, looking at a point jittered about the cluster (so objects also fall partly outside
   the image); a table (a 1400 mm box, random colour) is drawn under them with probability 0.85.
-  "Floating": every object at a uniformly random orientation, depth 250-1200 mm, centre
+  "Floating": every object at a uniformly random orientation, depth ``float_depth`` (250-1200) mm, centre
   projecting anywhere in the image +-10 %, free to overlap (heavy occlusion).
 - camera: the dataset's intrinsics (``camera.json``) scaled to the input size, focal x U(0.9, 1.1);
 - clutter (optional): up to ``max_distractors`` unlabelled ``distractors`` meshes placed like the
@@ -180,7 +180,8 @@ class DetectionSampleGenerator(RendererOwner):
                  confusable=None, p_pair: float = 0.0, probe_points=None, p_mesh_colors: float = 0.0,
                  distractors: dict | None = None, max_distractors: int = 0, gain_jitter: float = 0.1,
                  saturation=(1.0, 1.0), blur=(0.25, 0.3, 1.0), min_objects: int = 1, backdrop=(0.0, 0, 0),
-                 photos=None, p_photo: float = 0.0, p_photo_texture: float = 0.0):
+                 photos=None, p_photo: float = 0.0, p_photo_texture: float = 0.0,
+                 camera_distance=(300.0, 1100.0), float_depth=(250.0, 1200.0)):
         self.meshes = {int(k): v for k, v in meshes.items()}
         self.obj_ids = np.array(sorted(self.meshes) if obj_ids is None else [int(o) for o in obj_ids], np.int64)
         self.K = np.asarray(K, dtype=np.float64)
@@ -218,6 +219,9 @@ class DetectionSampleGenerator(RendererOwner):
         self.radius = {int(o): float(np.linalg.norm(r.hull, axis=1).max()) for o, r in self.rest.items()}
         # instances of meshes with their own colours keep them with this probability (the scorer's data)
         self.p_mesh_colors = float(p_mesh_colors)
+        # mm: the camera's distance from a table scene's cluster, the depth range of floating objects
+        self.camera_distance = (float(camera_distance[0]), float(camera_distance[1]))
+        self.float_depth = (float(float_depth[0]), float(float_depth[1]))
         self.coloured = {int(o): bool(getattr(self.meshes[int(o)].visual, "defined", False)) for o in self.obj_ids}
         self.probe_points = {int(o): [np.asarray(p, np.float64).reshape(-1, 3) for p in sets]
                              for o, sets in (probe_points or {}).items()}
@@ -290,7 +294,7 @@ class DetectionSampleGenerator(RendererOwner):
         T_world_obj = make_pose(np.stack(Rs), np.concatenate([centres, np.array(lifts)[:, None]], 1))[keep]
         centre = centres[keep].mean(0)
         spread = float(np.ptp(centres[keep], axis=0).max()) / 2 + 50.0 if keep.sum() > 1 else 60.0
-        dist = rng.uniform(300.0, 1100.0)
+        dist = rng.uniform(*self.camera_distance)
         el = math.radians(rng.uniform(12.0, 85.0))
         az = rng.uniform(0, 2 * np.pi)
         target = np.array([*(centre + rng.normal(0, 0.5 * spread, 2)), rng.uniform(0, 40)])
@@ -305,7 +309,7 @@ class DetectionSampleGenerator(RendererOwner):
         rng = self.rng
         n = len(ids)
         w, h = self.input_size
-        z = rng.uniform(250.0, 1200.0, n)
+        z = rng.uniform(*self.float_depth, n)
         u = rng.uniform(-0.1 * w, 1.1 * w, n)
         v = rng.uniform(-0.1 * h, 1.1 * h, n)
         if pair and n >= 2:  # the second object next to the first, at about its depth

@@ -37,6 +37,7 @@ CONFS = {
         "long_iterations": 1500,
         "seed": 0,
         "device": "cpu",
+        "distance": None,               # [near, far] mm of the rendered scenes (None: the preset's 300-1100)
     },
 }
 RECORD = "onboard.json"
@@ -49,11 +50,14 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
             c[k] = None if c[k] is None else int(c[k])
         c["long_iterations"], c["seed"] = int(c["long_iterations"]), int(c["seed"])
         c["long"] = bool(c["long"])
+        c["distance"] = None if c["distance"] is None else [float(v) for v in c["distance"]]
     except (TypeError, ValueError) as e:
         raise CosyError(f"onboard settings: {e}") from None
     if any(c[k] is not None and c[k] < 1 for k in ("detector_iterations", "classifier_iterations")) \
-            or c["long_iterations"] < 1 or c["device"] not in ("cpu", "cuda"):
-        raise CosyError("onboard settings out of range (iterations >= 1, device cpu or cuda)")
+            or c["long_iterations"] < 1 or c["device"] not in ("cpu", "cuda") \
+            or (c["distance"] is not None and not (len(c["distance"]) == 2 and 0 < c["distance"][0] <= c["distance"][1])):
+        raise CosyError("onboard settings out of range (iterations >= 1, device cpu or cuda, distance [near, far] "
+                        "with 0 < near <= far mm)")
     return c
 
 
@@ -69,6 +73,8 @@ def train_command(kind: str, models_dir: Path, camera: Path | None, run: Path, c
         cmd += ["--backgrounds", str(backgrounds)]
     if iterations is not None:
         cmd += ["--iterations", str(iterations)]
+    if conf.get("distance"):
+        cmd += ["--distance", ",".join(f"{v:g}" for v in conf["distance"])]
     if resume and (run / "checkpoint.pt").is_file():
         cmd += ["--resume"]
     return cmd + list(extra or [])

@@ -80,6 +80,8 @@ DEFAULT_CONF = {
     "backgrounds": None,          # a folder of photographs: random windows of them as backgrounds
     "p_photo": 0.5,               # with backgrounds: the share of images on a photograph
     "p_photo_texture": 0.0,       # with backgrounds: the share of table and clutter surfaces wearing a photograph
+    "camera_distance": [300.0, 1100.0],  # mm: the camera's distance from a table scene's objects
+    "float_depth": [250.0, 1200.0],      # mm: the depth range of floating objects
 }
 
 CONFS = {
@@ -98,7 +100,8 @@ CONFS = {
 
 # the settings of the rendered scenes' appearance that the detector and the box classifier share
 APPEARANCE_KEYS = ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects", "max_distractors",
-                   "clutter_shapes", "backdrop", "backgrounds", "p_photo", "p_photo_texture")
+                   "clutter_shapes", "backdrop", "backgrounds", "p_photo", "p_photo_texture", "camera_distance",
+                   "float_depth")
 
 
 def check_appearance(c: dict) -> None:
@@ -115,6 +118,11 @@ def check_appearance(c: dict) -> None:
         if not 0 <= c[k] <= 1:
             raise CosyError(f"{k} must be in [0, 1], got {c[k]}")
     c["backdrop"] = [float(c["backdrop"][0]), int(c["backdrop"][1]), int(c["backdrop"][2])]
+    for k in ("camera_distance", "float_depth"):
+        lo_hi = [float(v) for v in c.get(k) or DEFAULT_CONF[k]]
+        if len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
+            raise CosyError(f"{k} must be [nearest, farthest] mm with 0 < nearest <= farthest, got {c.get(k)}")
+        c[k] = lo_hi
     if c["clutter_shapes"] < 0 or not (0 <= c["backdrop"][0] <= 1 and 0 <= c["backdrop"][1] <= c["backdrop"][2]):
         raise CosyError("clutter_shapes must be >= 0 and backdrop [probability in [0, 1], fewest, most >= fewest]")
     if not (0 <= c["p_mesh_colors"] <= 1 and 0 <= c["gain_jitter"] < 1 and c["max_distractors"] >= 0
@@ -137,7 +145,11 @@ def appearance_card(c: dict) -> str:
             + (f", photographs of the folder `{Path(c['backgrounds']).name}` as the background of {c['p_photo']:.0%} "
                "of the images" if c.get("backgrounds") and c.get("p_photo") else "")
             + (f", windows of them on {c['p_photo_texture']:.0%} of the table and clutter surfaces"
-               if c.get("backgrounds") and c.get("p_photo_texture") else ""))
+               if c.get("backgrounds") and c.get("p_photo_texture") else "")
+            + (f", the camera {c['camera_distance'][0]:g}-{c['camera_distance'][1]:g} mm from table scenes and floating "
+               f"objects at {c['float_depth'][0]:g}-{c['float_depth'][1]:g} mm"
+               if c.get("camera_distance") and (list(c["camera_distance"]) != DEFAULT_CONF["camera_distance"]
+                                                or list(c["float_depth"]) != DEFAULT_CONF["float_depth"]) else ""))
 
 
 def appearance_kwargs(conf: dict, log: Callable[[str], None] = print, what: str = "train detector") -> dict:
@@ -148,6 +160,9 @@ def appearance_kwargs(conf: dict, log: Callable[[str], None] = print, what: str 
     appearance = {k: conf[k] for k in ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects")}
     if appearance != {k: DEFAULT_CONF[k] for k in appearance}:  # else the generator's defaults, as before
         kw.update(appearance)
+    for k in ("camera_distance", "float_depth"):
+        if list(conf.get(k) or DEFAULT_CONF[k]) != DEFAULT_CONF[k]:
+            kw[k] = tuple(conf[k])
     if conf["max_distractors"] > 0 or conf["backdrop"][0] > 0:
         from ..synth.objects import object_meshes
         from .data import CLUTTER_ID0, DISTRACTOR_ID0, clutter_meshes
