@@ -160,8 +160,8 @@ def appearance_kwargs(conf: dict, log: Callable[[str], None] = print, what: str 
     appearance = {k: conf[k] for k in ("p_mesh_colors", "gain_jitter", "saturation", "blur", "min_objects")}
     if appearance != {k: DEFAULT_CONF[k] for k in appearance}:  # else the generator's defaults, as before
         kw.update(appearance)
-    for k in ("camera_distance", "float_depth"):
-        if list(conf.get(k) or DEFAULT_CONF[k]) != DEFAULT_CONF[k]:
+    for k in ("camera_distance", "float_depth"):  # resolved: check_appearance made both [near, far] lists
+        if conf[k] != DEFAULT_CONF[k]:
             kw[k] = tuple(conf[k])
     if conf["max_distractors"] > 0 or conf["backdrop"][0] > 0:
         from ..synth.objects import object_meshes
