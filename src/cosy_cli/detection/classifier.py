@@ -164,6 +164,9 @@ def xywh_to_xyxy_continuous(boxes: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------- network
+ARCHS = ("plain", "detector", "lite0")
+
+
 @dataclass
 class ClassifierConfig:
     """What rebuilds the network. obj_ids: class k < C is object obj_ids[k]; class C is
@@ -174,7 +177,9 @@ class ClassifierConfig:
     + stages of ``widths`` = its 5 channel widths, ``depth`` extra convs per stage; it can be
     warm-started from an exported detector), then the average and the max over the cells of the
     last two stages, concatenated, linear (max pooling keeps a small local detail such as a
-    notch). box_head: a second linear output of 4 box edge offsets (:func:`box_deltas`).
+    notch). arch "lite0": EfficientNet-Lite0 (:mod:`cosy_cli.detection.efficientnet_lite`, started
+    from its ImageNet weights), ``widths`` its 5 map widths (16, 24, 40, 112, 320), the same pooling
+    as "detector". box_head: a second linear output of 4 box edge offsets (:func:`box_deltas`).
     mask_head: a third output, the visible mask of the object the box is about over the crop
     ((crop / MASK_STRIDE)^2 logits; a small top-down decoder over the stride 4, 8 and 16 maps;
     class-agnostic: the object centred in the crop); crop a multiple of 16."""
@@ -197,8 +202,13 @@ class ClassifierConfig:
         self.mask_head = bool(self.mask_head)
         if self.mask_head and self.crop % 16:
             raise ValueError(f"a mask head needs a crop side that is a multiple of 16, got {self.crop}")
-        if self.arch not in ("plain", "detector"):
-            raise ValueError(f"arch must be plain or detector, got {self.arch!r}")
+        if self.arch not in ARCHS:
+            raise ValueError(f"arch must be one of {', '.join(ARCHS)}, got {self.arch!r}")
+        if self.arch == "lite0":
+            from .efficientnet_lite import WIDTHS
+
+            if self.widths != WIDTHS:
+                raise ValueError(f"arch lite0: widths are {list(WIDTHS)}, got {list(self.widths)}")
         if self.arch == "detector" and (len(self.widths) != 5 or len(self.depth) != 4):
             raise ValueError("arch detector: 5 widths (the detector's channels) and 4 depths")
 
@@ -238,9 +248,15 @@ def build_network(config: ClassifierConfig):
                     cin = w
                 self.features = nn.Sequential(*layers)
                 n_feat = cin
-            else:  # the detector's backbone (same module names as CenterNet: stem, stages)
+            elif cfg.arch == "detector":  # the detector's backbone (same module names as CenterNet: stem, stages)
                 self.stem, self.stages = backbone(cfg.widths, cfg.depth)
                 n_feat = 2 * (cfg.widths[-1] + cfg.widths[-2])
+            else:  # EfficientNet-Lite0 (stem, blocks)
+                from . import efficientnet_lite
+
+                self.stem, self.blocks = efficientnet_lite.build()
+                n_feat = 2 * (cfg.widths[-1] + cfg.widths[-2])
+            self.frozen = 0  # leading backbone stages kept fixed in training (freeze())
             self.dropout = nn.Dropout(0.2)
             self.fc = nn.Linear(n_feat, cfg.n_classes)
             if cfg.box_head:  # starts at "the box is right" (zero offsets)
@@ -252,8 +268,35 @@ def build_network(config: ClassifierConfig):
                 self.mask_lateral = nn.ModuleList([nn.Conv2d(cfg.widths[i], k, 1) for i in (1, 2, 3)])
                 self.mask_smooth = nn.ModuleList([cbr(k, k), cbr(k, k)])
                 self.mask_out = nn.Conv2d(k, 1, 1)
-            self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
-            self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
+            mean, std = ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225)) if cfg.arch != "lite0" else ((0.5,) * 3, (0.5,) * 3)
+            self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1))
+            self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1))
+
+        def backbone_stages(self) -> list:
+            """The backbone's modules grouped by output stride (2, 4, 8, 16, 32; arch detector and lite0)."""
+            if self.config.arch == "detector":
+                return [[self.stem]] + [[st] for st in self.stages]
+            from .efficientnet_lite import stage_groups
+
+            return stage_groups(self.stem, self.blocks)
+
+        def freeze(self, n_stages: int) -> int:
+            """Keep the first ``n_stages`` backbone stages fixed in training (no gradient, BatchNorm
+            statistics as they are); returns the number of frozen parameters."""
+            from .efficientnet_lite import freeze
+
+            self.frozen = int(n_stages)
+            n = freeze(self.backbone_stages(), self.frozen)
+            self.train(self.training)
+            return n
+
+        def train(self, mode: bool = True):
+            from .efficientnet_lite import keep_frozen_eval
+
+            super().train(mode)
+            if self.frozen:
+                keep_frozen_eval(self.backbone_stages(), self.frozen)
+            return self
 
         def maps(self, x):
             """The feature maps at strides 4, 8, 16 and the last (16 plain, 32 detector)."""
@@ -264,6 +307,10 @@ def build_network(config: ClassifierConfig):
                     x = self.features[i + 1](self.features[i](x))
                     out.append(x)
                 return out[1:] + [out[-1]]
+            if self.config.arch == "lite0":
+                from .efficientnet_lite import maps
+
+                return maps(self.stem, self.blocks, x)[1:]
             x = self.stem(x)
             for st in self.stages:
                 x = st(x)

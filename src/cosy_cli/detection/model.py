@@ -2,9 +2,11 @@
 Zhou et al. 2019, with TTFNet-style box regression), plain torch, fast on a CPU.
 
 Network. Input (B, 3, H, W) float32 RGB in [0, 1] at the config's ``input_size`` (normalised
-inside ``forward``, so the ONNX graph takes the same input). A VGG-like backbone of 3x3
+inside ``forward``, so the ONNX graph takes the same input). Backbone ``plain``: VGG-like 3x3
 conv + BatchNorm + ReLU blocks, each stage starting with a stride-2 conv (strides 2, 4, 8, 16,
-32), and a top-down feature pyramid (1x1 laterals, nearest upsampling, a 3x3 conv per level)
+32); ``lite0``: EfficientNet-Lite0 (:mod:`cosy_cli.detection.efficientnet_lite`, started from its
+ImageNet weights; its first stages may stay fixed in training, :meth:`CenterNet.freeze`). Then a
+top-down feature pyramid (1x1 laterals, nearest upsampling, a 3x3 conv per level)
 down to the output stride (default 8). Two heads on that map:
 
 - ``heat``: (B, C, h, w) logits of the per-class centre heatmap (C = number of objects);
@@ -44,6 +46,7 @@ from torch import nn
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+BACKBONES = ("plain", "lite0")
 GAUSS_ALPHA = 0.54  # sigma = alpha * size / 6 (TTFNet)
 BOX_REGION = 0.3  # box regression where the object's Gaussian >= this
 HEAT_PRIOR = 0.01  # initial heatmap probability (bias of the last heat conv)
@@ -55,9 +58,9 @@ class DetectorConfig:
     """What is needed to rebuild the network (checkpoints, ONNX metadata).
 
     obj_ids: the class of channel k is object ``obj_ids[k]``. input_size: (width, height) px.
-    stride: output stride (4, 8 or 16). channels: backbone stage widths (strides 2..32);
-    depth: extra 3x3 convs in the stages of stride 4..32; fpn, head: widths of the pyramid and
-    the heads.
+    stride: output stride (4, 8 or 16). backbone: ``plain`` or ``lite0``. channels: backbone stage
+    widths (strides 2..32; lite0: its own); depth: extra 3x3 convs in the stages of stride 4..32
+    (plain); fpn, head: widths of the pyramid and the heads.
     """
 
     obj_ids: list = field(default_factory=list)
@@ -67,6 +70,7 @@ class DetectorConfig:
     depth: tuple = (0, 1, 2, 2)
     fpn: int = 48
     head: int = 48
+    backbone: str = "plain"
 
     def __post_init__(self):
         self.obj_ids = [int(o) for o in self.obj_ids]
@@ -77,6 +81,13 @@ class DetectorConfig:
             raise ValueError(f"stride must be 4, 8 or 16, got {self.stride}")
         if len(self.channels) != 5 or len(self.depth) != 4:
             raise ValueError("channels: 5 stage widths (strides 2..32); depth: 4 (strides 4..32)")
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}")
+        if self.backbone == "lite0":
+            from .efficientnet_lite import WIDTHS
+
+            if self.channels != WIDTHS:
+                raise ValueError(f"backbone lite0: channels are {list(WIDTHS)}, got {list(self.channels)}")
         w, h = self.input_size
         if w % 16 or h % 16 or w % self.stride or h % self.stride:
             raise ValueError(f"input size must be a multiple of 16 px (and of the stride) per side, got {w} x {h}")
@@ -100,7 +111,8 @@ class DetectorConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "DetectorConfig":
-        known = {k: d[k] for k in ("obj_ids", "input_size", "stride", "channels", "depth", "fpn", "head") if k in d}
+        known = {k: d[k] for k in ("obj_ids", "input_size", "stride", "channels", "depth", "fpn", "head", "backbone")
+                 if k in d}
         return cls(**known)
 
 
@@ -128,15 +140,23 @@ class CenterNet(nn.Module):
         super().__init__()
         self.config = config
         ch = config.channels
-        self.stem, self.stages = backbone(ch, config.depth)
+        mean, std = IMAGENET_MEAN, IMAGENET_STD
+        if config.backbone == "lite0":
+            from . import efficientnet_lite
+
+            self.stem, self.blocks = efficientnet_lite.build()
+            mean, std = efficientnet_lite.MEAN, efficientnet_lite.STD
+        else:
+            self.stem, self.stages = backbone(ch, config.depth)
+        self.frozen = 0  # leading backbone stages kept fixed in training (freeze())
         self.first_level = {4: 0, 8: 1, 16: 2}[config.stride]  # index in stages of the output stride
         used = ch[1 + self.first_level:]
         self.laterals = nn.ModuleList([nn.Conv2d(c, config.fpn, 1) for c in used])
         self.smooth = nn.ModuleList([_cbr(config.fpn, config.fpn) for _ in used[:-1]])
         self.heat = nn.Sequential(_cbr(config.fpn, config.head), nn.Conv2d(config.head, config.n_classes, 1))
         self.box = nn.Sequential(_cbr(config.fpn, config.head), nn.Conv2d(config.head, 4, 1))
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         self._init()
 
     def _init(self):
@@ -151,13 +171,44 @@ class CenterNet(nn.Module):
         nn.init.normal_(last_box.weight, std=0.01)
         nn.init.constant_(last_box.bias, math.log(2.0))  # ltrb = 2 cells
 
+    def backbone_stages(self) -> list:
+        """The backbone's modules grouped by output stride (2, 4, 8, 16, 32)."""
+        if self.config.backbone == "lite0":
+            from .efficientnet_lite import stage_groups
+
+            return stage_groups(self.stem, self.blocks)
+        return [[self.stem]] + [[st] for st in self.stages]
+
+    def freeze(self, n_stages: int) -> int:
+        """Keep the first ``n_stages`` backbone stages fixed in training (no gradient, BatchNorm
+        statistics as they are); returns the number of frozen parameters."""
+        from .efficientnet_lite import freeze
+
+        self.frozen = int(n_stages)
+        n = freeze(self.backbone_stages(), self.frozen)
+        self.train(self.training)
+        return n
+
+    def train(self, mode: bool = True):
+        from .efficientnet_lite import keep_frozen_eval
+
+        super().train(mode)
+        if self.frozen:
+            keep_frozen_eval(self.backbone_stages(), self.frozen)
+        return self
+
     def forward(self, x: torch.Tensor):
         x = (x - self.mean) / self.std
-        x = self.stem(x)
-        feats = []
-        for stage in self.stages:
-            x = stage(x)
-            feats.append(x)
+        if self.config.backbone == "lite0":
+            from .efficientnet_lite import maps
+
+            feats = maps(self.stem, self.blocks, x)[1:]
+        else:
+            x = self.stem(x)
+            feats = []
+            for stage in self.stages:
+                x = stage(x)
+                feats.append(x)
         feats = feats[self.first_level:]
         y = self.laterals[-1](feats[-1])
         for i in range(len(feats) - 2, -1, -1):

