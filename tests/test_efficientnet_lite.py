@@ -114,6 +114,9 @@ def test_frozen_stages_stay_fixed_and_the_onnx_computes_what_torch_does(tmp_path
 def test_lite0_settings():
     c = resolve_conf("real", arch="lite0")
     assert c["widths"] == list(el.WIDTHS) and c["freeze"] == 3 and c["init"] is None  # not the detector's backbone
+    assert (c["iterations"], c["lr"]) == (1500, 5e-4)  # the schedule measured with it, unless given
+    assert resolve_conf("real", arch="lite0", iterations=7)["iterations"] == 7
+    assert resolve_conf("real")["iterations"] == 3000
     assert resolve_conf("real")["freeze"] == 0
     with pytest.raises(CosyError, match="freeze"):
         resolve_conf(None, arch="plain", widths=[8, 8, 8, 8], freeze=1)

@@ -46,10 +46,14 @@ def test_onboard_trains_both_side_by_side_exports_and_resumes(tmp_path):
     r = _run(base + ["--detector-iterations", 3, "--classifier-iterations", 3, "--resume"])
     assert r.exit_code == 0, r.output
     assert _step(out / "detector") == 3 and _step(out / "classifier") == 3
-    # --long: the detector continues at 480 x 352 from the first run's weights; --distance reaches every run
+    # --long: the detector continues at 480 x 352 from the first run's weights; --distance reaches every run;
+    # --classifier-backbone the classifier alone
     r = _run(base + ["--detector-iterations", 1, "--classifier-iterations", 1, "--long", "--long-iterations", 1,
-                     "--distance", "400,1500", "--overwrite"])
+                     "--distance", "400,1500", "--classifier-backbone", "efficientnet-lite0", "--overwrite"])
     assert r.exit_code == 0, r.output
+    assert json.loads((out / "classifier" / "config.json").read_text())["arch"] == "lite0"
+    assert OnnxClassifier(out / "classifier.onnx").config.arch == "lite0"
+    assert json.loads((out / "detector" / "config.json").read_text())["backbone"] == "plain"
     assert _step(out / "detector480") == 1
     cfg = json.loads((out / "detector480" / "config.json").read_text())
     assert list(cfg["input_size"]) == [480, 352] and cfg["init"].endswith("detector320.onnx")

@@ -38,6 +38,7 @@ CONFS = {
         "seed": 0,
         "device": "cpu",
         "distance": None,               # [near, far] mm of the rendered scenes (None: the preset's 300-1100)
+        "classifier_backbone": None,    # detector | efficientnet-lite0 (None: the preset's, the detector's backbone)
     },
 }
 RECORD = "onboard.json"
@@ -51,6 +52,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["long_iterations"], c["seed"] = int(c["long_iterations"]), int(c["seed"])
         c["long"] = bool(c["long"])
         c["distance"] = None if c["distance"] is None else [float(v) for v in c["distance"]]
+        if c["classifier_backbone"] not in (None, "detector", "efficientnet-lite0"):
+            raise ValueError(f"classifier_backbone must be detector or efficientnet-lite0, got {c['classifier_backbone']!r}")
     except (TypeError, ValueError) as e:
         raise CosyError(f"onboard settings: {e}") from None
     if any(c[k] is not None and c[k] < 1 for k in ("detector_iterations", "classifier_iterations")) \
@@ -75,6 +78,8 @@ def train_command(kind: str, models_dir: Path, camera: Path | None, run: Path, c
         cmd += ["--iterations", str(iterations)]
     if conf.get("distance"):
         cmd += ["--distance", ",".join(f"{v:g}" for v in conf["distance"])]
+    if kind == "classifier" and conf.get("classifier_backbone"):
+        cmd += ["--backbone", conf["classifier_backbone"]]
     if resume and (run / "checkpoint.pt").is_file():
         cmd += ["--resume"]
     return cmd + list(extra or [])
@@ -170,8 +175,10 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, *, ca
     from . import classifier_train, train as det_train
 
     runs = {"detector": out / "detector", "classifier": out / "classifier"}
+    clf_arch = {"efficientnet-lite0": "lite0"}.get(conf["classifier_backbone"])
     totals = {"detector": conf["detector_iterations"] or int(det_train.CONFS["real"]["iterations"]),
-              "classifier": conf["classifier_iterations"] or int(classifier_train.CONFS["real"]["iterations"])}
+              "classifier": conf["classifier_iterations"]
+              or int(classifier_train.resolve_conf("real", arch=clf_arch)["iterations"])}
     jobs = {name: (train_command(name, models_dir, camera, runs[name], conf, backgrounds=backgrounds,
                                  iterations=conf[f"{name}_iterations"], resume=resume), runs[name])
             for name in runs}
