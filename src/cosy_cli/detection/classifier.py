@@ -235,9 +235,9 @@ def build_network(config: ClassifierConfig):
     import torch
     from torch import nn
 
-    from .model import _cbr as cbr, backbone
+    from .model import FrozenStages, _cbr as cbr, backbone
 
-    class BoxClassifier(nn.Module):
+    class BoxClassifier(FrozenStages, nn.Module):
         def __init__(self, cfg: ClassifierConfig):
             super().__init__()
             self.config = cfg
@@ -256,7 +256,6 @@ def build_network(config: ClassifierConfig):
 
                 self.stem, self.blocks = efficientnet_lite.build()
                 n_feat = 2 * (cfg.widths[-1] + cfg.widths[-2])
-            self.frozen = 0  # leading backbone stages kept fixed in training (freeze())
             self.dropout = nn.Dropout(0.2)
             self.fc = nn.Linear(n_feat, cfg.n_classes)
             if cfg.box_head:  # starts at "the box is right" (zero offsets)
@@ -279,24 +278,6 @@ def build_network(config: ClassifierConfig):
             from .efficientnet_lite import stage_groups
 
             return stage_groups(self.stem, self.blocks)
-
-        def freeze(self, n_stages: int) -> int:
-            """Keep the first ``n_stages`` backbone stages fixed in training (no gradient, BatchNorm
-            statistics as they are); returns the number of frozen parameters."""
-            from .efficientnet_lite import freeze
-
-            self.frozen = int(n_stages)
-            n = freeze(self.backbone_stages(), self.frozen)
-            self.train(self.training)
-            return n
-
-        def train(self, mode: bool = True):
-            from .efficientnet_lite import keep_frozen_eval
-
-            super().train(mode)
-            if self.frozen:
-                keep_frozen_eval(self.backbone_stages(), self.frozen)
-            return self
 
         def maps(self, x):
             """The feature maps at strides 4, 8, 16 and the last (16 plain, 32 detector)."""

@@ -95,25 +95,6 @@ def stage_groups(stem: nn.Module, blocks: nn.ModuleList) -> list:
     return groups
 
 
-def freeze(groups: list, n: int) -> int:
-    """No gradient for the parameters of the first ``n`` module groups; returns their number. The
-    caller keeps those modules in eval mode (:func:`keep_frozen_eval`)."""
-    count = 0
-    for group in groups[:n]:
-        for m in group:
-            for p in m.parameters():
-                p.requires_grad_(False)
-                count += p.numel()
-    return count
-
-
-def keep_frozen_eval(groups: list, n: int) -> None:
-    """Eval mode (BatchNorm statistics as they are) for the first ``n`` module groups."""
-    for group in groups[:n]:
-        for m in group:
-            m.eval()
-
-
 def _key_map() -> dict:
     """The wheel's tensor names -> ours (``stem.*``, ``blocks.i.*``)."""
     bn = ("weight", "bias", "running_mean", "running_var")

@@ -5,7 +5,7 @@ Network. Input (B, 3, H, W) float32 RGB in [0, 1] at the config's ``input_size``
 inside ``forward``, so the ONNX graph takes the same input). Backbone ``plain``: VGG-like 3x3
 conv + BatchNorm + ReLU blocks, each stage starting with a stride-2 conv (strides 2, 4, 8, 16,
 32); ``lite0``: EfficientNet-Lite0 (:mod:`cosy_cli.detection.efficientnet_lite`, started from its
-ImageNet weights; its first stages may stay fixed in training, :meth:`CenterNet.freeze`). Then a
+ImageNet weights; its first stages may stay fixed in training, :class:`FrozenStages`). Then a
 top-down feature pyramid (1x1 laterals, nearest upsampling, a 3x3 conv per level)
 down to the output stride (default 8). Two heads on that map:
 
@@ -132,7 +132,35 @@ def backbone(channels, depth) -> tuple[nn.Sequential, nn.ModuleList]:
     return stem, nn.ModuleList(stages)
 
 
-class CenterNet(nn.Module):
+class FrozenStages:
+    """For a network whose ``backbone_stages()`` lists its backbone's modules by output stride:
+    :meth:`freeze` keeps the first stages fixed in training (no gradient; their BatchNorms stay in
+    eval mode, their statistics as they are, whatever ``train()`` is called with)."""
+
+    frozen = 0
+
+    def freeze(self, n_stages: int) -> int:
+        """Freeze the first ``n_stages`` backbone stages; returns the number of their parameters."""
+        self.frozen = int(n_stages)
+        n = 0
+        for group in self.backbone_stages()[:self.frozen]:
+            for m in group:
+                for p in m.parameters():
+                    p.requires_grad_(False)
+                    n += p.numel()
+        self.train(self.training)
+        return n
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        if self.frozen:
+            for group in self.backbone_stages()[:self.frozen]:
+                for m in group:
+                    m.eval()
+        return self
+
+
+class CenterNet(FrozenStages, nn.Module):
     """The detector: ``forward(x)`` with x (B, 3, H, W) in [0, 1] -> (heat logits (B, C, h, w),
     box raw (B, 4, h, w)); see the module docstring."""
 
@@ -148,7 +176,6 @@ class CenterNet(nn.Module):
             mean, std = efficientnet_lite.MEAN, efficientnet_lite.STD
         else:
             self.stem, self.stages = backbone(ch, config.depth)
-        self.frozen = 0  # leading backbone stages kept fixed in training (freeze())
         self.first_level = {4: 0, 8: 1, 16: 2}[config.stride]  # index in stages of the output stride
         used = ch[1 + self.first_level:]
         self.laterals = nn.ModuleList([nn.Conv2d(c, config.fpn, 1) for c in used])
@@ -178,24 +205,6 @@ class CenterNet(nn.Module):
 
             return stage_groups(self.stem, self.blocks)
         return [[self.stem]] + [[st] for st in self.stages]
-
-    def freeze(self, n_stages: int) -> int:
-        """Keep the first ``n_stages`` backbone stages fixed in training (no gradient, BatchNorm
-        statistics as they are); returns the number of frozen parameters."""
-        from .efficientnet_lite import freeze
-
-        self.frozen = int(n_stages)
-        n = freeze(self.backbone_stages(), self.frozen)
-        self.train(self.training)
-        return n
-
-    def train(self, mode: bool = True):
-        from .efficientnet_lite import keep_frozen_eval
-
-        super().train(mode)
-        if self.frozen:
-            keep_frozen_eval(self.backbone_stages(), self.frozen)
-        return self
 
     def forward(self, x: torch.Tensor):
         x = (x - self.mean) / self.std
