@@ -271,14 +271,6 @@ def build_network(config: ClassifierConfig):
             self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1))
             self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1))
 
-        def backbone_stages(self) -> list:
-            """The backbone's modules grouped by output stride (2, 4, 8, 16, 32; arch detector and lite0)."""
-            if self.config.arch == "detector":
-                return [[self.stem]] + [[st] for st in self.stages]
-            from .efficientnet_lite import stage_groups
-
-            return stage_groups(self.stem, self.blocks)
-
         def maps(self, x):
             """The feature maps at strides 4, 8, 16 and the last (16 plain, 32 detector)."""
             x = (x - self.mean) / self.std

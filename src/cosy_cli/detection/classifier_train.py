@@ -104,7 +104,6 @@ DEFAULT_CONF = {
     **{k: DETECTOR_CONFS["default"][k] for k in APPEARANCE_KEYS},
 }
 # the default's class weights and look-alike pairs name the sample objects: runs on other objects drop them
-LITE0_FREEZE = 3  # EfficientNet-Lite0: its stages of strides 2, 4 and 8 stay as ImageNet trained them (speed)
 SAMPLE_TUNING = {"class_weights": DEFAULT_CONF["class_weights"], "confusable": DEFAULT_CONF["confusable"]}
 
 CONFS = {
@@ -131,11 +130,13 @@ def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
     if conf == "real" and overrides.get("arch") == "lite0":
         overrides = dict(overrides, **{k: v for k, v in LITE0_REAL.items() if overrides.get(k) is None})
     c = merge_conf(CONFS, conf, overrides, default="default", what="classifier training")
+    from .efficientnet_lite import FROZEN_STAGES, WIDTHS
+
     try:
         for k in ("crop", "iterations", "batch_size", "warmup", "reuse", "background_per_image", "max_objects",
                   "threads", "seed", "workers", "checkpoint_every", "log_every"):
             c[k] = int(c[k])
-        c["freeze"] = (LITE0_FREEZE if c["arch"] == "lite0" else 0) if c["freeze"] is None else int(c["freeze"])
+        c["freeze"] = (FROZEN_STAGES if c["arch"] == "lite0" else 0) if c["freeze"] is None else int(c["freeze"])
         for k in ("margin", "lr", "ema", "jitter", "min_visib", "p_pair", "soft_tol_mm", "box_weight", "mask_weight"):
             c[k] = float(c[k])
         c["box_head"] = bool(c["box_head"])
@@ -151,8 +152,6 @@ def resolve_conf(conf: dict | str | None = None, **overrides) -> dict:
     except (TypeError, ValueError, IndexError) as e:
         raise CosyError(f"classifier training settings: {e}") from None
     if c["arch"] == "lite0":
-        from .efficientnet_lite import WIDTHS
-
         c["widths"] = list(WIDTHS)
         if c["init"] == "shipped":  # the detector's backbone does not fit: ImageNet instead
             c["init"] = None

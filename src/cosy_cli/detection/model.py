@@ -133,11 +133,20 @@ def backbone(channels, depth) -> tuple[nn.Sequential, nn.ModuleList]:
 
 
 class FrozenStages:
-    """For a network whose ``backbone_stages()`` lists its backbone's modules by output stride:
-    :meth:`freeze` keeps the first stages fixed in training (no gradient; their BatchNorms stay in
-    eval mode, their statistics as they are, whatever ``train()`` is called with)."""
+    """For a network whose backbone is ``stem`` + ``stages`` (:func:`backbone`) or ``stem`` +
+    ``blocks`` (EfficientNet-Lite0): :meth:`freeze` keeps the first stages fixed in training (no
+    gradient; their BatchNorms stay in eval mode, their statistics as they are, whatever
+    ``train()`` is called with)."""
 
     frozen = 0
+
+    def backbone_stages(self) -> list:
+        """The backbone's modules grouped by output stride (2, 4, 8, 16, 32)."""
+        if hasattr(self, "blocks"):
+            from .efficientnet_lite import stage_groups
+
+            return stage_groups(self.stem, self.blocks)
+        return [[self.stem]] + [[st] for st in self.stages]
 
     def freeze(self, n_stages: int) -> int:
         """Freeze the first ``n_stages`` backbone stages; returns the number of their parameters."""
@@ -197,14 +206,6 @@ class CenterNet(FrozenStages, nn.Module):
         nn.init.constant_(last_heat.bias, -math.log((1 - HEAT_PRIOR) / HEAT_PRIOR))
         nn.init.normal_(last_box.weight, std=0.01)
         nn.init.constant_(last_box.bias, math.log(2.0))  # ltrb = 2 cells
-
-    def backbone_stages(self) -> list:
-        """The backbone's modules grouped by output stride (2, 4, 8, 16, 32)."""
-        if self.config.backbone == "lite0":
-            from .efficientnet_lite import stage_groups
-
-            return stage_groups(self.stem, self.blocks)
-        return [[self.stem]] + [[st] for st in self.stages]
 
     def forward(self, x: torch.Tensor):
         x = (x - self.mean) / self.std

@@ -194,15 +194,16 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     if c["kind"] != "detector":
         raise CosyError(f"kind must be detector here, not {c['kind']!r}")
     c["input_size"] = [int(v) for v in c["input_size"]]
-    if c["backbone"] not in ("plain", "lite0"):
-        raise CosyError(f"backbone must be plain or lite0, not {c['backbone']!r}")
-    if c["backbone"] == "lite0":
-        from .efficientnet_lite import WIDTHS
+    from .efficientnet_lite import FROZEN_STAGES, WIDTHS
+    from .model import BACKBONES
 
+    if c["backbone"] not in BACKBONES:
+        raise CosyError(f"backbone must be one of {', '.join(BACKBONES)}, not {c['backbone']!r}")
+    if c["backbone"] == "lite0":
         c["channels"] = list(WIDTHS)
         if c["init"] == "shipped":  # the shipped detector's weights do not fit: ImageNet's instead
             c["init"] = None
-    c["freeze"] = (3 if c["backbone"] == "lite0" else 0) if c["freeze"] is None else int(c["freeze"])
+    c["freeze"] = (FROZEN_STAGES if c["backbone"] == "lite0" else 0) if c["freeze"] is None else int(c["freeze"])
     if not 0 <= c["freeze"] <= 5:
         raise CosyError(f"freeze must be 0-5 backbone stages, got {c['freeze']}")
     c["channels"] = [int(v) for v in c["channels"]]
