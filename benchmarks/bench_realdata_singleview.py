@@ -65,6 +65,7 @@ VARIANTS = {
     "search": {"rgb_refine": "search"},
     "contour": {"rgb_refine": "contour"},
     "search+contour": {"rgb_refine": "search+contour"},
+    "new-all": {"scorer_scope": "all"},  # with +scorer: its prediction is every verification score
 }
 
 

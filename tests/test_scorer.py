@@ -83,7 +83,7 @@ def test_the_verifier_feeds_the_scorer_what_training_stored(tiny_scorer):
     from cosy_cli.objects import ObjectDatabase
     from cosy_cli.singleview.scorer.features import assemble
     from cosy_cli.singleview.scorer.runtime import OnnxScorer
-    from cosy_cli.singleview.training_free.verify import Verifier, observe
+    from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf, observe
 
     out, _ = tiny_scorer
     ds = BopDataset(SAMPLES, "test")
@@ -97,7 +97,7 @@ def test_the_verifier_feeds_the_scorer_what_training_stored(tiny_scorer):
     boxes = np.array([[b.bbox_visib[0], b.bbox_visib[1], b.bbox_visib[0] + b.bbox_visib[2],
                        b.bbox_visib[1] + b.bbox_visib[3]] for b in info], float)
     scorer = OnnxScorer(out)
-    with Verifier(db, scorer=scorer) as v:
+    with Verifier(db, VerifyConf(scorer_scope="all"), scorer=scorer) as v:
         obs = [observe(rgb, K, b, v.conf) for b in boxes]
         det = np.repeat(np.arange(3), 2)
         Th = np.repeat(T, 2, 0)
@@ -122,6 +122,10 @@ def test_estimate_and_run_take_a_scorer(tmp_path, tiny_scorer):
     assert "learned scorer" in r.output
     doc = json.loads((tmp_path / "c.json").read_text())
     assert doc["conf"]["scorer"] is True and doc["inputs"]["scorer_model"]["sha1"]
+    assert "scorer_scope" not in doc["conf"]  # the default (rank) is not recorded
+    r = _run(args + ["--scorer", str(out_scorer), "--scorer-scope", "all", "--out", str(tmp_path / "all.csv")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "all.json").read_text())["conf"]["scorer_scope"] == "all"
     from cosy_cli.io import bop
 
     assert len(bop.read_results(out)) == len(bop.read_results(out).table) > 0
@@ -150,3 +154,115 @@ def test_train_scorer_command_line_errors(tmp_path):
     assert r.exit_code == 2 and ".onnx" in r.output
     r = _run(["train", "refiner", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "r")])
     assert r.exit_code == 2 and "--dataset" in r.output
+
+
+@pytest.fixture(scope="module")
+def tiny_lite0_scorer(tmp_path_factory, tiny_scorer):
+    """A lite0 scorer trained through the command line on the tiny scorer's data (the same
+    settings, so its shards and templates are reused)."""
+    import shutil
+
+    from cosy_cli.training import scorer
+
+    out = tmp_path_factory.mktemp("lite0") / "scorer.onnx"
+    run = scorer.run_folder(out)
+    run.mkdir()
+    shutil.copytree(Path(tiny_scorer[1]["run"]) / "shards", run / "shards")
+    shutil.copytree(Path(tiny_scorer[1]["run"]) / "templates", run / "templates")
+    r = scorer.main(dict(TINY, arch="lite0"), SAMPLES / "models", out, log=lambda *_: None, progress=False)
+    return out, r
+
+
+def test_lite0_scorer_trains_only_its_head_on_cached_maps_equal_to_inference(tiny_lite0_scorer):
+    """The lite0 scorer: ImageNet trunk frozen through training; the maps cached for training give
+    the logits the whole network gives on the same inputs; the ONNX file gives them too."""
+    import torch
+
+    from cosy_cli.detection import efficientnet_lite
+    from cosy_cli.singleview.scorer.runtime import OnnxScorer
+    from cosy_cli.training import loop, scorer
+    from cosy_cli.training.scorer_data import load_shards
+
+    out, r = tiny_lite0_scorer
+    run = Path(r["run"])
+    net, ck = loop.load_run(run, scorer._build, "cosy train scorer", "scorer checkpoint")
+    assert ck["config"]["arch"] == "lite0" and ck["step"] == TINY["iterations"]
+    ref = efficientnet_lite.imagenet_state()
+    own = net.state_dict()
+    for k in ("stem.1.weight", "blocks.4.project.0.weight", "blocks.10.dw.2.running_mean"):
+        assert torch.equal(own[k], ref[k]), k  # frozen, BatchNorm statistics included
+    assert "blocks.11.expand.0.weight" not in own  # the trunk ends at stride 16
+    d = load_shards(run / "shards", [1])  # the validation shard
+    maps = scorer.ensure_maps(net, run / "shards", run / "maps", [1], progress=False)
+    assert maps["p8"].dtype == np.float16 and len(maps["p8"]) == len(d["target"]) and len(maps["o8"]) == len(d["obs_rgb"])
+    cached, direct = scorer._MapBatches(d, maps), scorer._Batches(d)
+    idx = np.arange(min(40, len(d["target"])))
+    with torch.no_grad():
+        a = cached.logits(net.eval(), idx).numpy()
+        b = direct.logits(net, idx).numpy()
+    np.testing.assert_allclose(a, b, atol=0.05 * (1 + np.abs(b).max()))  # float16 maps
+    x, t = direct.inputs(idx)
+    sc = OnnxScorer(out)
+    assert sc.card["arch"] == "lite0"
+    np.testing.assert_allclose(sc(x, t), 1 / (1 + np.exp(-b)), atol=1e-5)
+    # each observed crop through the trunk once (the observation of each hypothesis given): the same
+    np.testing.assert_allclose(sc(x, t, d["det"][idx]), 1 / (1 + np.exp(-b)), atol=1e-5)
+    assert 0 < sc.card["validation"]["val_pick"] <= sc.card["validation"]["val_oracle"]
+
+
+def test_lite0_scorer_from_the_command_line(tmp_path, monkeypatch):
+    """`cosy train scorer --backbone efficientnet-lite0` trains the lite0 arch; a backbone of the
+    pose networks is refused with exit code 2; a wrong arch in the settings is named."""
+    from cosy_cli.errors import CosyError
+    from cosy_cli.training import scorer
+
+    seen = {}
+    monkeypatch.setattr(scorer, "main", lambda conf, *a, **k: seen.update(conf))
+    args = ["train", "scorer", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "s.onnx")]
+    assert _run(args + ["--backbone", "efficientnet-lite0"]).exit_code == 0 and seen["arch"] == "lite0"
+    assert _run(args).exit_code == 0 and seen["arch"] == "plain"
+    r = _run(args + ["--backbone", "efficientnet-b0"])
+    assert r.exit_code == 2 and "efficientnet-lite0" in r.output
+    with pytest.raises(CosyError, match="arch"):
+        scorer.resolve_conf(None, arch="resnet")
+
+
+def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
+    """scorer_scope "rank": rank() orders each detection's best rank_keep (by the training-free score)
+    by the scorer's predictions; the others keep their training-free scores; score() stays
+    training-free unless asked. A wrong scope in the estimate settings is named."""
+    from cosy_cli.errors import CosyError
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.objects import ObjectDatabase
+    from cosy_cli.singleview import estimate_stage
+    from cosy_cli.singleview.scorer.runtime import OnnxScorer
+    from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf
+
+    ds = BopDataset(SAMPLES, "test")
+    gt = ds.scene_gt(1)[0][:2]
+    rgb, K = ds.read_rgb(1, 0), ds.scene_camera(1)[0].K
+    db = ObjectDatabase.from_models_dir(SAMPLES / "models")
+    info = ds.scene_gt_info(1)[0][:2]
+    boxes = np.array([[b.bbox_visib[0], b.bbox_visib[1], b.bbox_visib[0] + b.bbox_visib[2],
+                       b.bbox_visib[1] + b.bbox_visib[3]] for b in info], float)
+    obj = np.array([g.obj_id for g in gt])
+    rng = np.random.default_rng(0)
+    T = np.repeat(np.stack([g.T_cam_obj for g in gt])[:, None], 6, 1)
+    T[:, 1:, :3, :3] = axis_angle_to_matrix(rng.normal(size=(2, 5, 3)) * 0.4) @ T[:, 1:, :3, :3]
+    T[:, 1:, :3, 3] += rng.normal(size=(2, 5, 3)) * 6
+    conf = VerifyConf(scorer_scope="rank", rank_keep=3, rank_faces=0)
+    with Verifier(db, conf, scorer=OnnxScorer(tiny_scorer[0])) as v:
+        r = v.rank(rgb, K, boxes, obj, T)
+        det = np.repeat(np.arange(2), 3)
+        first, rest = r.T_cam_obj[:, :3].reshape(-1, 4, 4), r.T_cam_obj[:, 3:].reshape(-1, 4, 4)
+        learned = v.score(r.obs, det, obj[det], first, learned=True)
+        free = v.score(r.obs, det, obj[det], first)
+        free_rest = v.score(r.obs, det, obj[det], rest)
+    np.testing.assert_allclose(r.score[:, :3].reshape(-1), learned, rtol=1e-6)
+    assert np.all(np.diff(r.score[:, :3], axis=1) <= 0)  # ordered by the scorer
+    np.testing.assert_allclose(r.score[:, 3:].reshape(-1), free_rest, rtol=1e-6)
+    assert np.all(free_rest.reshape(2, 3).max(1) <= free.reshape(2, 3).min(1) + 1e-12)  # the best 3 went ahead
+    assert not np.allclose(learned, free)
+    assert estimate_stage.resolve_conf(None, scorer_scope="rank")["scorer_scope"] == "rank"
+    with pytest.raises(CosyError, match="scorer_scope"):
+        estimate_stage.resolve_conf(None, scorer_scope="some")

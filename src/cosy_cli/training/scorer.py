@@ -33,6 +33,7 @@ import numpy as np
 
 from ..conf import merge_conf
 from ..errors import CosyError
+from ..io.atomic import atomic_path
 from . import loop
 from .scorer_data import DATA_DEFAULTS, load_shards, write_shards
 
@@ -40,9 +41,10 @@ LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "loss_bce", "loss_rank", "va
 
 DEFAULT_CONF = dict(DATA_DEFAULTS, **{
     "kind": "scorer",
+    "arch": "plain",             # plain: a small CNN from scratch; lite0: frozen ImageNet EfficientNet-Lite0 maps
     "shards": 150,               # training shards of images_per_shard images (about 13 min with 2 workers)
     "val_shards": 4,
-    "widths": [24, 48, 64, 96],
+    "widths": None,              # None: the arch's (plain [24, 48, 64, 96], lite0 [64, 128])
     "hidden": 64,
     "iterations": 8000,          # steps of batch_size detections (about 20 min on 2 cores)
     "batch_size": 6,             # detections per step, each with all its stored hypotheses (about 24)
@@ -77,14 +79,21 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         for k in ("lr", "weight_decay", "rank_weight", "rank_temperature", "min_visib", "box_jitter", "p_exact_box",
                   "p_mesh_colors", "gain_jitter"):
             c[k] = float(c[k])
-        c["widths"] = [int(w) for w in c["widths"]]
+        c["widths"] = None if c["widths"] is None else [int(w) for w in c["widths"]]
     except (TypeError, ValueError) as e:
         raise CosyError(f"scorer training settings: {e}") from None
     if c["shards"] < 1 or c["val_shards"] < 1 or c["iterations"] < 1 or c["batch_size"] < 2 or c["lr"] <= 0 \
-            or c["images_per_shard"] < 1 or c["verify_top"] < 1 or len(c["widths"]) < 1 or c["workers"] < 0 \
+            or c["images_per_shard"] < 1 or c["verify_top"] < 1 or (c["widths"] is not None and len(c["widths"]) < 1) \
+            or c["workers"] < 0 \
             or c["rank_weight"] < 0 or c["rank_temperature"] <= 0:
         raise CosyError("scorer training settings out of range (shards, val_shards, iterations, images_per_shard, "
                         "verify_top >= 1; batch_size >= 2 detections; lr, rank_temperature > 0; rank_weight >= 0)")
+    from ..singleview.scorer.model import ARCHS
+
+    if c["arch"] not in ARCHS:
+        raise CosyError(f"scorer training setting arch: expected one of {', '.join(ARCHS)}, got {c['arch']!r}")
+    if c["arch"] == "lite0" and c["widths"] is not None and len(c["widths"]) != 2:
+        raise CosyError("scorer arch lite0: widths are two numbers (the head's channels at strides 8 and 16)")
     return c
 
 
@@ -95,7 +104,8 @@ def run_folder(out: str | Path) -> Path:
 
 
 class _Batches:
-    """Network inputs of hypotheses of loaded shards (:func:`~cosy_cli.singleview.scorer.features.assemble`)."""
+    """Network inputs of hypotheses of loaded shards (:func:`~cosy_cli.singleview.scorer.features.assemble`);
+    :meth:`logits` runs a :class:`~cosy_cli.singleview.scorer.model.ScorerNet` on them."""
 
     def __init__(self, data: dict):
         self.d = data
@@ -110,23 +120,98 @@ class _Batches:
                      d["not_bg"][u].astype(np.float32) / np.float32(255.0), inv, d["rgba"][idx], d["gain"][idx])
         return x, d["terms"][idx]
 
+    def logits(self, net, idx: np.ndarray, flip: np.ndarray | None = None):
+        import torch
 
-def validate(net, data: dict, batch: int = 512) -> dict:
-    """Scores of every hypothesis of ``data``, and per detection the target of the template hypothesis
-    ranked first by the network, by the training-free total, and the best (means over detections)."""
+        dev = next(net.parameters()).device
+        x, t = self.inputs(idx)
+        if flip is not None:
+            x[flip] = x[flip][..., ::-1]
+        return net(torch.from_numpy(np.ascontiguousarray(x)).to(dev), torch.from_numpy(t).to(dev))
+
+
+class _MapBatches(_Batches):
+    """For the lite0 scorer: its frozen trunk's maps of every stored hypothesis, computed once
+    (:func:`ensure_maps`, float16), so that training runs only the head."""
+
+    def __init__(self, data: dict, maps: dict):
+        super().__init__(data)
+        self.m = maps
+
+    def logits(self, net, idx: np.ndarray, flip: np.ndarray | None = None):
+        import torch
+
+        dev = next(net.parameters()).device
+        m, det = self.m, self.d["det"][idx]
+        arrs = [m["o8"][det], m["p8"][idx], m["o16"][det], m["p16"][idx], m["m8"][idx]]
+        if flip is not None:  # the maps of a mirrored image are close to the mirrored maps
+            for a in arrs:
+                a[flip] = a[flip][..., ::-1]
+        ts = [torch.from_numpy(np.ascontiguousarray(a, np.float32)).to(dev) for a in arrs]
+        return net.head_logit(*ts, torch.from_numpy(self.d["terms"][idx]).to(dev))
+
+
+def ensure_maps(net, shard_folder: Path, map_folder: Path, indices, progress: bool = True) -> dict:
+    """The lite0 scorer's trunk maps (:meth:`~cosy_cli.singleview.scorer.model.Lite0ScorerNet.maps`)
+    of the shards ``indices``, one ``.npz`` per shard in ``map_folder`` (written atomically, reused
+    when present), joined as :func:`~cosy_cli.training.scorer_data.load_shards` joins the shards."""
     import torch
 
-    b = _Batches(data)
+    from ..console import progress as progress_bar
+    from .scorer_data import shard_path
+
+    map_folder = Path(map_folder)
+    map_folder.mkdir(parents=True, exist_ok=True)
+    todo = [i for i in indices if not shard_path(map_folder, i).is_file()]
+    bar = progress_bar(total=len(todo), desc="scorer maps", unit="shard", enabled=progress and bool(todo))
+    was = net.training
+    net.eval()
+    try:
+        for i in todo:
+            b = _Batches(load_shards(shard_folder, [i]))
+            n = len(b.d["target"])
+            out = {"o8": [], "o16": [], "p8": [], "p16": [], "m8": []}
+            with torch.no_grad():
+                obs = b.d["obs_rgb"]  # the observations once, (x - 0.5) / 0.5
+                for s in range(0, len(obs), 256):
+                    x = torch.from_numpy(np.moveaxis(obs[s:s + 256], -1, 1).astype(np.float32) / np.float32(127.5) - 1)
+                    f8, f16 = net.trunk(x)
+                    out["o8"].append(f8.numpy().astype(np.float16))
+                    out["o16"].append(f16.numpy().astype(np.float16))
+                for s in range(0, n, 256):  # the renders pasted onto them
+                    x, _ = b.inputs(np.arange(s, min(n, s + 256)))
+                    _, pasted, m8 = net.split(torch.from_numpy(x))
+                    f8, f16 = net.trunk(2.0 * pasted)
+                    out["p8"].append(f8.numpy().astype(np.float16))
+                    out["p16"].append(f16.numpy().astype(np.float16))
+                    out["m8"].append(m8.numpy().astype(np.float16))
+            out = {k: np.concatenate(v) for k, v in out.items()}
+            with atomic_path(shard_path(map_folder, i)) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez(f, **out)
+            bar.update(1)
+    finally:
+        bar.close()
+        net.train(was)
+    parts = [dict(np.load(shard_path(map_folder, i))) for i in indices]
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def validate(net, batches: _Batches, batch: int = 512) -> dict:
+    """Scores of every hypothesis of the batches' data, and per detection the target of the template
+    hypothesis ranked first by the network, by the training-free total, and the best (means over
+    detections)."""
+    import torch
+
+    data = batches.d
     n = len(data["target"])
     pred = np.empty(n)
     was = net.training
-    dev = next(net.parameters()).device
     net.eval()
     with torch.no_grad():
         for i in range(0, n, batch):
             idx = np.arange(i, min(n, i + batch))
-            x, t = b.inputs(idx)
-            pred[idx] = net(torch.from_numpy(x).to(dev), torch.from_numpy(t).to(dev)).cpu().numpy()
+            pred[idx] = batches.logits(net, idx).cpu().numpy()
     net.train(was)
     tmpl = data["perturbed"] == 0
     det = data["det"][tmpl]
@@ -154,7 +239,7 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     from ..io import bop
     from ..objects import ObjectDatabase
     from ..singleview.estimate_stage import ensure_templates
-    from ..singleview.scorer.model import ScorerNet
+    from ..singleview.scorer.model import build
     from ..singleview.training_free.verify import VerifyConf
 
     t_start = time.time()
@@ -217,8 +302,18 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     # 3. training
     device = loop.select_device(c, log)
     torch.manual_seed(c["seed"])
-    net = ScorerNet(c["widths"], c["hidden"]).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=c["lr"], weight_decay=c["weight_decay"])
+    net = build(c["arch"], c["widths"], c["hidden"])
+    if c["arch"] == "lite0":  # the frozen trunk's maps of every hypothesis, once
+        t0 = time.time()
+        maps = ensure_maps(net, run / "shards", run / "maps", range(n_tr + n_val), progress=progress)
+        batches = _MapBatches(train, {k: v[:_split(train, maps, k)] for k, v in maps.items()})
+        val_batches = _MapBatches(val, {k: v[_split(train, maps, k):] for k, v in maps.items()})
+        log(f"train scorer: ImageNet maps of the hypotheses {(time.time() - t0) / 60:.1f} min")
+    else:
+        batches, val_batches = _Batches(train), _Batches(val)
+    net = net.to(device)
+    opt = torch.optim.AdamW([p for p in net.parameters() if p.requires_grad], lr=c["lr"],
+                            weight_decay=c["weight_decay"])
     rng = np.random.default_rng([c["seed"], 1])
     step, samples, last = 0, 0, {}
     if ckpt is not None:
@@ -227,7 +322,6 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
         step, samples, last = loop.resume_progress(ckpt, run, LOG_FIELDS)
         if ckpt["rng"].get("numpy_generator"):
             rng.bit_generator.state = ckpt["rng"]["numpy_generator"]
-    batches = _Batches(train)
     bce = torch.nn.BCEWithLogitsLoss()
     state = {"val": {}}
 
@@ -238,12 +332,9 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
         pick = groups[rng.integers(0, len(groups), c["batch_size"])]  # (D, M) hypothesis indices, -1 padding
         valid = pick >= 0
         idx = pick[valid]
-        x, t = batches.inputs(idx)
         flip = rng.random(len(idx)) < 0.5
-        x[flip] = x[flip][..., ::-1]
-        xt, tt = torch.from_numpy(np.ascontiguousarray(x)).to(device), torch.from_numpy(t).to(device)
         y = torch.from_numpy(train["target"][idx]).to(device)
-        logit = net(xt, tt)
+        logit = batches.logits(net, idx, flip)
         loss_bce = bce(logit, y)
         # listwise: per detection, softmax of the logits against softmax of target / temperature
         m = torch.from_numpy(valid).to(device)
@@ -255,7 +346,7 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
         loss.backward()
         opt.step()
         if (s + 1) % c["checkpoint_every"] == 0 or s + 1 == c["iterations"]:
-            state["val"] = validate(net, val)
+            state["val"] = validate(net, val_batches)
         return lr, {"total": loss.item(), "bce": loss_bce.item(), "rank": loss_rank.item()}, {}
 
     def log_row(means: loop.Means):
@@ -276,7 +367,7 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
                       rng=lambda: loop.rng_state(rng), plot=plot, log_fields=LOG_FIELDS, resume=resume,
                       unit="detections", loss_format="{:.4f}", sigterm=True, log=log, progress=progress)
     net.eval()
-    v = validate(net.cpu(), val)
+    v = validate(net.cpu(), val_batches)
     _export(net, out, record, db.obj_ids, n_tr, n_hyp, v)
     total = time.time() - t_start
     log(f"train scorer: validation (rendered, held-out seeds), AR of the first-ranked template hypothesis "
@@ -304,7 +395,11 @@ def export(run: str | Path, out: str | Path, log: Callable[[str], None] = print)
     record = ck["config"]
     n_tr, n_val = record["shards"], record["val_shards"]
     val = load_shards(run / "shards", range(n_tr, n_tr + n_val))
-    v = validate(net, val)
+    if record.get("arch", "plain") == "lite0":
+        maps = ensure_maps(net, run / "shards", run / "maps", range(n_tr, n_tr + n_val), progress=False)
+        v = validate(net, _MapBatches(val, maps))
+    else:
+        v = validate(net, _Batches(val))
     obj_ids = json.loads(Path(record["models"], "models_info.json").read_text()).keys() \
         if Path(record["models"], "models_info.json").is_file() else []
     _export(net, Path(out), record, sorted(int(o) for o in obj_ids), n_tr, -1, v)
@@ -314,12 +409,17 @@ def export(run: str | Path, out: str | Path, log: Callable[[str], None] = print)
 
 
 def _build(ck: dict):
-    from ..singleview.scorer.model import ScorerNet
+    from ..singleview.scorer.model import build
 
     c = ck["config"]
-    net = ScorerNet(c["widths"], c["hidden"])
+    net = build(c.get("arch", "plain"), c["widths"], c["hidden"], pretrained=False)
     net.load_state_dict(ck["model"])
     return net
+
+
+def _split(train: dict, maps: dict, key: str) -> int:
+    """Where the validation shards start in the joined maps of ``key`` (per observation or per hypothesis)."""
+    return len(train["obs_rgb"]) if key in ("o8", "o16") else len(train["target"])
 
 
 def _groups(det: np.ndarray) -> np.ndarray:

@@ -34,11 +34,19 @@ class OnnxScorer:
         render, so it still runs on them, but its figures were measured on its own objects)."""
         return sorted(set(int(o) for o in obj_ids) - set(self.obj_ids))
 
-    def __call__(self, image: np.ndarray, terms: np.ndarray) -> np.ndarray:
+    def __call__(self, image: np.ndarray, terms: np.ndarray, ridx: np.ndarray | None = None) -> np.ndarray:
+        """``ridx`` (n,): the observation of each hypothesis (those of one share its observed crop's
+        channels), so that a lite0 scorer runs each observed crop through its trunk once."""
         n = len(image)
         out = np.empty(n)
+        lite = self.card.get("arch", "plain") == "lite0"
         for i in range(0, n, self.batch):
-            logit = self.session.run(None, {"image": np.ascontiguousarray(image[i:i + self.batch], np.float32),
-                                            "terms": np.ascontiguousarray(terms[i:i + self.batch], np.float32)})[0]
+            feed = {"image": np.ascontiguousarray(image[i:i + self.batch], np.float32),
+                    "terms": np.ascontiguousarray(terms[i:i + self.batch], np.float32)}
+            if lite:
+                r = np.arange(len(feed["image"])) if ridx is None else np.asarray(ridx)[i:i + self.batch]
+                _, first, inv = np.unique(r, return_index=True, return_inverse=True)
+                feed.update(first=first.astype(np.int64), ridx=inv.reshape(-1).astype(np.int64))
+            logit = self.session.run(None, feed)[0]
             out[i:i + self.batch] = 1.0 / (1.0 + np.exp(-np.asarray(logit, np.float64).reshape(-1)))
         return out

@@ -109,6 +109,8 @@ class VerifyConf:
     min_gradient: float = 40.0     # Sobel magnitude (grey levels) of an image gradient in the oriented term
     w_orient: float = 1.0
     w_mask: float = 2.0            # the silhouette's IoU with the detection's segmentation, where it has one
+    scorer_scope: str = "rank"     # with a learned scorer: "rank": it orders only rank()'s final rank_keep per
+                                   # detection, the rest stays training-free; "all": its prediction is every score
     # refinement
     rounds: int = 3
     samples: int = 16
@@ -322,13 +324,14 @@ class Verifier(Closing):
 
     def score(self, obs: list[CropObservation], det: np.ndarray, obj_ids: np.ndarray, T: np.ndarray,
               prior: np.ndarray | None = None, terms: bool = False, max_faces: int | None = None,
-              inputs: bool = False):
+              inputs: bool = False, learned: bool | None = None):
         """Scores (n,) of hypotheses T (n, 4, 4) of detections ``det`` (n,) indices into ``obs``,
         objects obj_ids (n,); ``prior`` (n,) in [0, 1]: the hypotheses' own scores (template
         matching), weighted by ``w_prior``. With ``terms``, also a dict of the per-term (n,) arrays.
         max_faces: render copies of at most this many faces (default ``conf.max_faces``).
         With a learned ``scorer``, the scores are its predictions (the terms still returned are
-        the training-free ones, "total" their weighted sum). ``inputs``: instead of the scores, a
+        the training-free ones, "total" their weighted sum) where ``learned`` says so (None: where
+        ``conf.scorer_scope`` is "all"). ``inputs``: instead of the scores, a
         dict of the scorer's raw inputs (renders "rgba" (n, S, S, 4) uint8, "gain" (n,), "terms"
         (n, T), "ridx" (n,) the observation of each, "udet" the observations used, "total" the
         training-free scores), what training stores.
@@ -458,14 +461,16 @@ class Verifier(Closing):
         total = np.where(has, total, 0.0)
         term_arrays = {"orient": o_score, "edge": e_score, "colour": c_score, "region": r_score, "box": b_score,
                        "mask": m_score}
-        if self.scorer is not None or inputs:
+        if learned is None:
+            learned = self.conf.scorer_scope == "all"
+        if (self.scorer is not None and learned) or inputs:
             from ..scorer.features import assemble, term_vector
 
             tv = term_vector(term_arrays, prior, coloured, total, area / np.maximum(barea, 1e-9))
             if inputs:
                 return {"rgba": out.rgba, "gain": gain_h, "terms": tv, "ridx": ridx, "udet": udet, "total": total}
             image = assemble(np.stack([obs[d].rgb for d in udet]), inb, nb, ridx, out.rgba, gain_h)
-            learned = np.where(has, self.scorer(image, tv), 0.0)
+            learned = np.where(has, self.scorer(image, tv, ridx), 0.0)
             if terms:
                 return learned, dict(term_arrays, total=total)
             return learned
@@ -494,6 +499,7 @@ class Verifier(Closing):
         sc = np.full((N, k), -1.0)  # verification scores are in [0, 1]: missing hypotheses rank last
         c = self.conf
         cascade = 0 < c.rank_faces < c.max_faces and c.rank_keep < k
+        last = self.scorer is not None and c.scorer_scope == "rank"  # the scorer orders the final rank_keep
         if cascade:
             self._renderer_with(c.rank_faces)
             coarse = np.array([self._coarse[int(o)] for o in obj_ids], bool)
@@ -502,15 +508,17 @@ class Verifier(Closing):
             sc[di, hi] = self.score(obs, di, obj_ids[di], T_hyp[di, hi], None if prior is None else pr[di, hi],
                                     max_faces=c.rank_faces if cascade else None)
         ahead = np.zeros((N, k))
-        if cascade:  # re-score each detection's best rank_keep with the full copies; they stay ahead
+        if cascade or last:  # re-score each detection's best rank_keep with the full copies; they stay ahead
             top = np.argsort(-sc, axis=1, kind="stable")[:, :c.rank_keep]
             di2 = np.repeat(np.arange(N), top.shape[1])
             hi2 = top.reshape(-1)
-            keep = (sc[di2, hi2] >= 0) & coarse[di2]  # objects drawn from their max_faces copy: scored already
+            keep = sc[di2, hi2] >= 0
+            if not last:  # objects drawn from their max_faces copy: scored already
+                keep &= coarse[di2]
             di2, hi2 = di2[keep], hi2[keep]
             if len(di2):
                 sc[di2, hi2] = self.score(obs, di2, obj_ids[di2], T_hyp[di2, hi2],
-                                          None if prior is None else pr[di2, hi2])
+                                          None if prior is None else pr[di2, hi2], learned=last or None)
                 ahead[di2, hi2] = 2.0
         order = np.argsort(-(sc + ahead), axis=1, kind="stable")
         rows = np.arange(N)[:, None]
