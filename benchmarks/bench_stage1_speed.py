@@ -33,6 +33,7 @@ first image is run once untimed).
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo-depth --scenes even --variants new-noscreen,new
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo-depth --scenes even --ref c349180 --variants ref-nocascade,new
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new --profile  # cProfile of new
+    .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new,new+scorer --scorer lmo-scorer.onnx
 """
 
 from __future__ import annotations
@@ -151,7 +152,9 @@ def main() -> None:
     ap.add_argument("--scenes", default="odd", help="lmo: odd | even | all | comma-separated ids")
     ap.add_argument("--frames", default="1-5", help="ycbv: image ids, e.g. 1-5 (chose) or 6-10 (held out)")
     ap.add_argument("--ref", default="HEAD", help="git revision of the reference chain's verify.py / templates.py")
-    ap.add_argument("--variants", default="ref,new", help=f"comma-separated of {', '.join(VARIANTS)}")
+    ap.add_argument("--variants", default="ref,new", help=f"comma-separated of {', '.join(VARIANTS)}; NAME+scorer: "
+                    "with --scorer (scorer_scope rank), NAME+scorer-all: scope all")
+    ap.add_argument("--scorer", type=Path, default=None, help="a learned scorer (cosy train scorer) for +scorer variants")
     ap.add_argument("--images", type=int, default=0, help="only the first N images (0: all)")
     ap.add_argument("--profile", action="store_true", help="cProfile the last variant; print the top functions")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv")
@@ -188,19 +191,22 @@ def main() -> None:
     has_depth = args.data != "lmo"
     names = args.variants.split(",")
     ref = {}
-    if any(VARIANTS[n][0] == "ref" for n in names):
+    if any(VARIANTS[n.partition("+")[0]][0] == "ref" for n in names):
         ref = {m: load_ref_module(m, args.ref) for m in ("verify", "templates", "icp")}
     chains = {}
     for n in names:
-        code, over, est_over = VARIANTS[n]
+        base, _, learned = n.partition("+")  # NAME+scorer / NAME+scorer-all: with --scorer, scope rank / all
+        code, over, est_over = VARIANTS[base]
         vmod = ref["verify"] if code == "ref" else verify
         tmod = ref["templates"] if code == "ref" else tpl
         imod = ref["icp"] if code == "ref" else icp
-        run_conf = es.decide(es.resolve_conf("default", **est_over), coarse_model=None, refiner_model=None,
-                             has_depth=has_depth)
+        scope = "all" if learned == "scorer-all" else "rank"
+        run_conf = es.decide(es.resolve_conf("default", **est_over, scorer_scope=scope), coarse_model=None,
+                             refiner_model=None, has_depth=has_depth)
         run_conf.update(coarse="templates", refiner="none")
-        est = es.Estimator(run_conf, db, templates=ts)
-        est._verifier = vmod.Verifier(db, vmod.VerifyConf(**over))
+        est = es.Estimator(run_conf, db, templates=ts, scorer_model=args.scorer if learned else None)
+        est._verifier = vmod.Verifier(db, vmod.VerifyConf(**over, **({"scorer_scope": scope} if learned else {})),
+                                      **({"scorer": est.scorer} if learned else {}))
         chains[n] = (est, tmod, imod)
     syms = {o: dbe[o].symmetries_with_steps(64) for o in dbe.obj_ids}
     th_mssd, th_mspd = np.arange(0.05, 0.51, 0.05), np.arange(5, 51, 5)

@@ -53,7 +53,7 @@ def tiny_scorer(tmp_path_factory):
     from cosy_cli.training import scorer
 
     out = tmp_path_factory.mktemp("scorer") / "scorer.onnx"
-    r = scorer.main(dict(TINY), SAMPLES / "models", out, log=lambda *_: None, progress=False)
+    r = scorer.main(dict(TINY, arch="plain"), SAMPLES / "models", out, log=lambda *_: None, progress=False)
     return out, r
 
 
@@ -211,8 +211,9 @@ def test_lite0_scorer_trains_only_its_head_on_cached_maps_equal_to_inference(tin
 
 
 def test_lite0_scorer_from_the_command_line(tmp_path, monkeypatch):
-    """`cosy train scorer --backbone efficientnet-lite0` trains the lite0 arch; a backbone of the
-    pose networks is refused with exit code 2; a wrong arch in the settings is named."""
+    """`cosy train scorer` trains the lite0 arch by default, the plain one with --backbone plain or
+    --preset plain; a backbone of the pose networks is refused with exit code 2; a wrong arch in
+    the settings is named."""
     from cosy_cli.errors import CosyError
     from cosy_cli.training import scorer
 
@@ -220,7 +221,9 @@ def test_lite0_scorer_from_the_command_line(tmp_path, monkeypatch):
     monkeypatch.setattr(scorer, "main", lambda conf, *a, **k: seen.update(conf))
     args = ["train", "scorer", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "s.onnx")]
     assert _run(args + ["--backbone", "efficientnet-lite0"]).exit_code == 0 and seen["arch"] == "lite0"
-    assert _run(args).exit_code == 0 and seen["arch"] == "plain"
+    assert _run(args).exit_code == 0 and seen["arch"] == "lite0" and seen["shards"] == 100
+    assert _run(args + ["--backbone", "plain"]).exit_code == 0 and seen["arch"] == "plain"
+    assert _run(args + ["--preset", "plain"]).exit_code == 0 and seen["arch"] == "plain" and seen["shards"] == 150
     r = _run(args + ["--backbone", "efficientnet-b0"])
     assert r.exit_code == 2 and "efficientnet-lite0" in r.output
     with pytest.raises(CosyError, match="arch"):

@@ -64,7 +64,7 @@ def distance_settings(distance) -> dict:
     return {} if distance is None else {"camera_distance": list(distance), "float_depth": list(distance)}
 
 
-PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "classifier": ("default", "real"), "coarse": (),
+PRESETS = {"scorer": ("default", "long", "plain"), "detector": ("default", "real"), "classifier": ("default", "real"), "coarse": (),
            "refiner": ()}
 
 
@@ -79,16 +79,17 @@ PRESETS = {"scorer": ("default", "long"), "detector": ("default", "real"), "clas
 @click.option("--camera", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Scorer, detector, classifier: BOP camera.json of the images it will see (intrinsics, image size) "
                    "[the camera.json beside the models folder, else 640x480].")
-@click.option("--preset", type=click.Choice(["default", "long", "real"]), default=None,
-              help="Scorer: default (150 shards, 8000 steps: 37 min on 2 cores for the 8 LM-O objects) or long "
-                   "(300 shards, 30000 steps: about 2 h) [default]. Detector: default, or real (for real "
+@click.option("--preset", type=click.Choice(["default", "long", "real", "plain"]), default=None,
+              help="Scorer: default (EfficientNet-Lite0 head, 100 shards, 6000 steps: about 40 min on 2 cores for the "
+                   "8 LM-O objects), long (300 shards, 30000 steps: about 2 h) or plain (the CNN from scratch, 150 "
+                   "shards, 8000 steps: 37 min) [default]. Detector: default, or real (for real "
                    "photographs: objects often in their own colours, clutter among and behind them, white balance, "
                    "saturation, blur, at least 3 objects per image, warm start from the shipped detector, 2500 "
                    "steps: 33 min on 2 cores for the 8 LM-O objects; add --backgrounds). Classifier: default (tuned "
                    "for the sample objects) or real (the detector's real appearance, uniform classes, the shipped "
                    "detector's backbone, 3000 steps; add --backgrounds).")
 @click.option("--shards", type=click.IntRange(min=1), default=None,
-              help="Scorer: training shards of 24 rendered images each [150; long: 300].")
+              help="Scorer: training shards of 24 rendered images each [100; long: 300; plain: 150].")
 @click.option("--split", default="train_pbr", show_default=True,
               help="Split the run is recorded for (training uses on-the-fly renders, not the split's images).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),
