@@ -126,6 +126,9 @@ def test_estimate_and_run_take_a_scorer(tmp_path, tiny_scorer):
     r = _run(args + ["--scorer", str(out_scorer), "--scorer-scope", "all", "--out", str(tmp_path / "all.csv")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "all.json").read_text())["conf"]["scorer_scope"] == "all"
+    r = _run(args + ["--scorer", str(out_scorer), "--scorer-keep", "4", "--out", str(tmp_path / "k4.csv")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "k4.json").read_text())["conf"]["scorer_keep"] == 4
     from cosy_cli.io import bop
 
     assert len(bop.read_results(out)) == len(bop.read_results(out).table) > 0
@@ -231,7 +234,7 @@ def test_lite0_scorer_from_the_command_line(tmp_path, monkeypatch):
 
 
 def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
-    """scorer_scope "rank": rank() orders each detection's best rank_keep (by the training-free score)
+    """scorer_scope "rank": rank() orders each detection's best scorer_keep (by the training-free score)
     by the scorer's predictions; the others keep their training-free scores; score() stays
     training-free unless asked. A wrong scope in the estimate settings is named."""
     from cosy_cli.errors import CosyError
@@ -253,7 +256,7 @@ def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
     T = np.repeat(np.stack([g.T_cam_obj for g in gt])[:, None], 6, 1)
     T[:, 1:, :3, :3] = axis_angle_to_matrix(rng.normal(size=(2, 5, 3)) * 0.4) @ T[:, 1:, :3, :3]
     T[:, 1:, :3, 3] += rng.normal(size=(2, 5, 3)) * 6
-    conf = VerifyConf(scorer_scope="rank", rank_keep=3, rank_faces=0)
+    conf = VerifyConf(scorer_scope="rank", scorer_keep=3, rank_faces=0)
     with Verifier(db, conf, scorer=OnnxScorer(tiny_scorer[0])) as v:
         r = v.rank(rgb, K, boxes, obj, T)
         det = np.repeat(np.arange(2), 3)
@@ -269,3 +272,5 @@ def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
     assert estimate_stage.resolve_conf(None, scorer_scope="rank")["scorer_scope"] == "rank"
     with pytest.raises(CosyError, match="scorer_scope"):
         estimate_stage.resolve_conf(None, scorer_scope="some")
+    with pytest.raises(CosyError, match="scorer_keep"):
+        estimate_stage.resolve_conf(None, scorer_keep=0)

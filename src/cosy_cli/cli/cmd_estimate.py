@@ -80,15 +80,19 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
               help="Learned hypothesis scorer (`cosy train scorer`; ONNX): orders the verified template hypotheses "
                    "instead of the training-free score [none].")
 @click.option("--scorer-scope", type=click.Choice(["rank", "all"]), default=None,
-              help="With --scorer: rank orders each detection's final 8 hypotheses by it, the refinement stays "
-                   "training-free; all puts its prediction in every verification score (3-4x slower) [rank].")
+              help="With --scorer: rank orders each detection's best --scorer-keep hypotheses by it, the refinement "
+                   "stays training-free; all puts its prediction in every verification score (3-4x slower) [rank].")
+@click.option("--scorer-keep", type=click.IntRange(1, 256), default=None,
+              help="With --scorer (scope rank): hypotheses per detection it orders, the best of the training-free "
+                   "first pass [16].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Crops per network call [32].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
 @user_errors
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
              depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, box_scales, masks,
-             mask_band, mask_weight, templates_dir, scorer_model, scorer_scope, providers, batch_size,
+             mask_band, mask_weight, templates_dir, scorer_model, scorer_scope, scorer_keep, providers,
+             batch_size,
              overwrite) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
 
@@ -106,7 +110,7 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
                                     hypotheses=hypotheses,
                                     rgb_refine=rgb_refine, providers=providers, masks=masks, box_scales=box_scales,
                                     batch_size=batch_size, mask_weight=mask_weight, mask_band=mask_band,
-                                    scorer_scope=scorer_scope)
+                                    scorer_scope=scorer_scope, scorer_keep=scorer_keep)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
                         refiner_model=refiner_model, templates_dir=templates_dir, scorer_model=scorer_model,

@@ -88,22 +88,25 @@ CONFS = {
                                       # has one; 2 chosen for exact masks)
         "mask_band": 0,               # templates: with a detection's mask, only gradients within this many cells of
                                       # it (of 64 across the box) count, and its outline does (0: off)
-        "scorer_scope": "rank",       # with --scorer: rank (it orders each detection's final 8 hypotheses; the
-                                      # refinement stays training-free) | all (every verification score is its
+        "scorer_scope": "rank",       # with --scorer: rank (it orders each detection's best scorer_keep hypotheses;
+                                      # the refinement stays training-free) | all (every verification score is its
                                       # prediction); rank chosen on the odd LM-O scenes (as good, 3.5x faster)
+        "scorer_keep": 16,            # scope rank: hypotheses per detection the scorer orders (16 chosen on the odd
+                                      # LM-O scenes against 8: 0.401 -> 0.420)
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
               "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto",
-              "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0, "scorer_scope": "rank"},
+              "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0, "scorer_scope": "rank",
+              "scorer_keep": 16},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
                       "masks": "auto", "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0,
-                      "scorer_scope": "rank"},
+                      "scorer_scope": "rank", "scorer_keep": 16},
 }
 
 
@@ -117,7 +120,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
     for k in ("refiner_iterations", "top_k", "icp_screen", "batch_size", "icp_iterations", "hypotheses",
-              "mask_band"):
+              "mask_band", "scorer_keep"):
         try:
             c[k] = int(c[k])
         except (TypeError, ValueError):
@@ -151,6 +154,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError("estimate setting verify_top must be >= 0 (0: no verification by rendering)")
     if not 0 <= c["mask_band"] <= 32:
         raise CosyError("estimate setting mask_band must be 0 (off) to 32 cells")
+    if not 1 <= c["scorer_keep"] <= 256:
+        raise CosyError("estimate setting scorer_keep must be 1 to 256 hypotheses per detection")
     if c["hypotheses"] < 1:
         raise CosyError("estimate setting hypotheses must be >= 1 (1: one pose per detection, no sidecar)")
     if c["refiner_iterations"] < 0 or c["top_k"] < 1 or c["batch_size"] < 1 or c["icp_iterations"] < 1 \
@@ -289,7 +294,8 @@ class Estimator:
             from .training_free.verify import Verifier, VerifyConf
 
             self._verifier = Verifier(self.db, VerifyConf(w_mask=float(self.conf.get("mask_weight", 2.0)),
-                                                          scorer_scope=self.conf.get("scorer_scope", "rank")),
+                                                          scorer_scope=self.conf.get("scorer_scope", "rank"),
+                                                          scorer_keep=int(self.conf.get("scorer_keep", 16))),
                                       scorer=self.scorer)
         return self._verifier
 
@@ -581,7 +587,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
     refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
-    for k in ("mask_weight", "mask_band", "scorer_scope"):  # recorded only when changed: earlier outputs stay up to date
+    for k in ("mask_weight", "mask_band", "scorer_scope", "scorer_keep"):  # recorded only when changed
         if run_conf.get(k) == CONFS["default"][k]:
             run_conf.pop(k)
     n_hyp = int(run_conf.pop("hypotheses", 1))

@@ -109,8 +109,9 @@ class VerifyConf:
     min_gradient: float = 40.0     # Sobel magnitude (grey levels) of an image gradient in the oriented term
     w_orient: float = 1.0
     w_mask: float = 2.0            # the silhouette's IoU with the detection's segmentation, where it has one
-    scorer_scope: str = "rank"     # with a learned scorer: "rank": it orders only rank()'s final rank_keep per
+    scorer_scope: str = "rank"     # with a learned scorer: "rank": it orders only rank()'s best scorer_keep per
                                    # detection, the rest stays training-free; "all": its prediction is every score
+    scorer_keep: int = 16          # scope "rank": hypotheses per detection the scorer orders (best by the first pass)
     # refinement
     rounds: int = 3
     samples: int = 16
@@ -499,7 +500,7 @@ class Verifier(Closing):
         sc = np.full((N, k), -1.0)  # verification scores are in [0, 1]: missing hypotheses rank last
         c = self.conf
         cascade = 0 < c.rank_faces < c.max_faces and c.rank_keep < k
-        last = self.scorer is not None and c.scorer_scope == "rank"  # the scorer orders the final rank_keep
+        last = self.scorer is not None and c.scorer_scope == "rank"  # the scorer orders the best scorer_keep
         if cascade:
             self._renderer_with(c.rank_faces)
             coarse = np.array([self._coarse[int(o)] for o in obj_ids], bool)
@@ -509,7 +510,7 @@ class Verifier(Closing):
                                     max_faces=c.rank_faces if cascade else None)
         ahead = np.zeros((N, k))
         if cascade or last:  # re-score each detection's best rank_keep with the full copies; they stay ahead
-            top = np.argsort(-sc, axis=1, kind="stable")[:, :c.rank_keep]
+            top = np.argsort(-sc, axis=1, kind="stable")[:, :c.scorer_keep if last else c.rank_keep]
             di2 = np.repeat(np.arange(N), top.shape[1])
             hi2 = top.reshape(-1)
             keep = sc[di2, hi2] >= 0
