@@ -62,17 +62,17 @@ class Lite0ScorerNet(nn.Module):
     images."""
 
     arch = "lite0"
-    TRUNK_BLOCKS = 11  # blocks 0..10: up to the stride-16 map
 
     def __init__(self, widths=(64, 128), hidden: int = 64, n_terms: int = len(TERM_NAMES), pretrained: bool = True):
         super().__init__()
         from ...detection import efficientnet_lite as el
 
+        self.stage8, end = el.STAGE_ENDS[2], el.STAGE_ENDS[3] + 1  # the last blocks of strides 8 and 16
         stem, blocks = el.build()
-        self.stem, self.blocks = stem, blocks[:self.TRUNK_BLOCKS]
+        self.stem, self.blocks = stem, blocks[:end]
         if pretrained:
             own = {k: v for k, v in el.imagenet_state().items()
-                   if k.startswith("stem.") or int(k.split(".")[1]) < self.TRUNK_BLOCKS}
+                   if k.startswith("stem.") or int(k.split(".")[1]) < end}
             self.load_state_dict(own, strict=False)
         for p in list(self.stem.parameters()) + list(self.blocks.parameters()):
             p.requires_grad_(False)
@@ -88,7 +88,6 @@ class Lite0ScorerNet(nn.Module):
         self.widths = (w8, w16)
         self.hidden = int(hidden)
         self.n_terms = int(n_terms)
-        self.stage8 = 4  # the last block of stride 8
 
     def train(self, mode: bool = True):
         super().train(mode)
