@@ -79,6 +79,7 @@ VARIANTS = {
     "ref-nocascade": ("ref", {"rank_faces": 0}, {}),  # the same in --ref's modules (--ref c349180: that commit's RGB-D chain)
     "new-vt96": ("new", {}, {"verify_top": 96}),  # more hypotheses verified
     "new-vt128": ("new", {}, {"verify_top": 128}),
+    "new-sk8": ("new", {"scorer_keep": 8}, {}),  # with +scorer: it orders 8 hypotheses per detection, not 16
 }
 
 
