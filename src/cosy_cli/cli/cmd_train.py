@@ -17,7 +17,7 @@ from .common import distance_range, user_errors
 BACKBONES = [f"efficientnet-b{i}" for i in range(4)]  # the pose networks'
 CLASSIFIER_BACKBONES = {"detector": "detector", "efficientnet-lite0": "lite0"}  # --backbone -> the classifier's arch
 DETECTOR_BACKBONES = {"plain": "plain", "efficientnet-lite0": "lite0"}  # --backbone -> the detector's backbone
-SCORER_BACKBONES = {"plain": "plain", "efficientnet-lite0": "lite0"}  # --backbone -> the scorer's arch
+SCORER_BACKBONES = DETECTOR_BACKBONES  # --backbone -> the scorer's arch: the same two choices
 
 
 def _crop(ctx, param, value):

@@ -308,9 +308,9 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     net = build(c["arch"], c["widths"], c["hidden"])
     if c["arch"] == "lite0":  # the frozen trunk's maps of every hypothesis, once
         t0 = time.time()
-        maps = ensure_maps(net, run / "shards", run / "maps", range(n_tr + n_val), progress=progress)
-        batches = _MapBatches(train, {k: v[:_split(train, maps, k)] for k, v in maps.items()})
-        val_batches = _MapBatches(val, {k: v[_split(train, maps, k):] for k, v in maps.items()})
+        batches = _MapBatches(train, ensure_maps(net, run / "shards", run / "maps", range(n_tr), progress=progress))
+        val_batches = _MapBatches(val, ensure_maps(net, run / "shards", run / "maps", range(n_tr, n_tr + n_val),
+                                                   progress=progress))
         log(f"train scorer: ImageNet maps of the hypotheses {(time.time() - t0) / 60:.1f} min")
     else:
         batches, val_batches = _Batches(train), _Batches(val)
@@ -418,11 +418,6 @@ def _build(ck: dict):
     net = build(c.get("arch", "plain"), c["widths"], c["hidden"], pretrained=False)
     net.load_state_dict(ck["model"])
     return net
-
-
-def _split(train: dict, maps: dict, key: str) -> int:
-    """Where the validation shards start in the joined maps of ``key`` (per observation or per hypothesis)."""
-    return len(train["obs_rgb"]) if key in ("o8", "o16") else len(train["target"])
 
 
 def _groups(det: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ class OnnxScorer:
         self.margin = float(self.card["margin"])
         self.obj_ids = [int(o) for o in self.card.get("obj_ids", [])]
         self.batch = int(batch)
+        self.arch = str(self.card.get("arch", "plain"))
 
     def unseen(self, obj_ids) -> list[int]:
         """The objects of ``obj_ids`` that the scorer was not trained on (it compares an image with a
@@ -39,11 +40,10 @@ class OnnxScorer:
         channels), so that a lite0 scorer runs each observed crop through its trunk once."""
         n = len(image)
         out = np.empty(n)
-        lite = self.card.get("arch", "plain") == "lite0"
         for i in range(0, n, self.batch):
             feed = {"image": np.ascontiguousarray(image[i:i + self.batch], np.float32),
                     "terms": np.ascontiguousarray(terms[i:i + self.batch], np.float32)}
-            if lite:
+            if self.arch == "lite0":
                 r = np.arange(len(feed["image"])) if ridx is None else np.asarray(ridx)[i:i + self.batch]
                 _, first, inv = np.unique(r, return_index=True, return_inverse=True)
                 feed.update(first=first.astype(np.int64), ridx=inv.reshape(-1).astype(np.int64))

@@ -471,10 +471,10 @@ class Verifier(Closing):
             if inputs:
                 return {"rgba": out.rgba, "gain": gain_h, "terms": tv, "ridx": ridx, "udet": udet, "total": total}
             image = assemble(np.stack([obs[d].rgb for d in udet]), inb, nb, ridx, out.rgba, gain_h)
-            learned = np.where(has, self.scorer(image, tv, ridx), 0.0)
+            pred = np.where(has, self.scorer(image, tv, ridx), 0.0)
             if terms:
-                return learned, dict(term_arrays, total=total)
-            return learned
+                return pred, dict(term_arrays, total=total)
+            return pred
         if terms:
             return total, term_arrays
         return total
@@ -509,7 +509,8 @@ class Verifier(Closing):
             sc[di, hi] = self.score(obs, di, obj_ids[di], T_hyp[di, hi], None if prior is None else pr[di, hi],
                                     max_faces=c.rank_faces if cascade else None)
         ahead = np.zeros((N, k))
-        if cascade or last:  # re-score each detection's best rank_keep with the full copies; they stay ahead
+        if cascade or last:  # re-score each detection's best rank_keep (scorer_keep by the scorer) with the full
+            # copies; they stay ahead
             top = np.argsort(-sc, axis=1, kind="stable")[:, :c.scorer_keep if last else c.rank_keep]
             di2 = np.repeat(np.arange(N), top.shape[1])
             hi2 = top.reshape(-1)
