@@ -34,6 +34,8 @@ first image is run once untimed).
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo-depth --scenes even --ref c349180 --variants ref-nocascade,new
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new --profile  # cProfile of new
     .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new,new+scorer --scorer lmo-scorer.onnx
+    .venv/bin/python benchmarks/bench_stage1_speed.py --data lmo --variants new,new+scorer,new+scorer2 \
+        --scorer lmo-scorer-fp32.onnx --scorer2 lmo-scorer.onnx  # float32 against int8
 """
 
 from __future__ import annotations
@@ -154,8 +156,10 @@ def main() -> None:
     ap.add_argument("--frames", default="1-5", help="ycbv: image ids, e.g. 1-5 (chose) or 6-10 (held out)")
     ap.add_argument("--ref", default="HEAD", help="git revision of the reference chain's verify.py / templates.py")
     ap.add_argument("--variants", default="ref,new", help=f"comma-separated of {', '.join(VARIANTS)}; NAME+scorer: "
-                    "with --scorer (scorer_scope rank), NAME+scorer-all: scope all")
+                    "with --scorer (scorer_scope rank), NAME+scorer-all: scope all, NAME+scorer2: --scorer2")
     ap.add_argument("--scorer", type=Path, default=None, help="a learned scorer (cosy train scorer) for +scorer variants")
+    ap.add_argument("--scorer2", type=Path, default=None, help="a second scorer for NAME+scorer2 variants (scope rank), "
+                    "e.g. the same run exported in float32 and in int8 (cosy export --precision)")
     ap.add_argument("--images", type=int, default=0, help="only the first N images (0: all)")
     ap.add_argument("--profile", action="store_true", help="cProfile the last variant; print the top functions")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "cosy_bench_realdata_sv")
@@ -205,7 +209,8 @@ def main() -> None:
         run_conf = es.decide(es.resolve_conf("default", **est_over, scorer_scope=scope), coarse_model=None,
                              refiner_model=None, has_depth=has_depth)
         run_conf.update(coarse="templates", refiner="none")
-        est = es.Estimator(run_conf, db, templates=ts, scorer_model=args.scorer if learned else None)
+        est = es.Estimator(run_conf, db, templates=ts,
+                           scorer_model=(args.scorer2 if learned == "scorer2" else args.scorer) if learned else None)
         est._verifier = vmod.Verifier(db, vmod.VerifyConf(**over, **({"scorer_scope": scope} if learned else {})),
                                       **({"scorer": est.scorer} if learned else {}))
         chains[n] = (est, tmod, imod)

@@ -322,3 +322,68 @@ def test_refine_records_leftover_replacements_and_can_turn_them_off(lmo_match):
         return sorted(line for line in (p / "predictions.csv").read_text().splitlines()[1:]
                       if float(line.split(",")[3]) >= 1.0)
     assert [r.rsplit(",", 1)[0] for r in refined(w / "lo_on")] == [r.rsplit(",", 1)[0] for r in refined(w / "lo_off")]
+
+
+class _TermScorer:
+    """Stands in for a learned scorer (crop and margin of the verifier's): the training-free total
+    (the verifier's own choice) or, ``flip``ped, its opposite; records the hypotheses it scored."""
+
+    crop, margin = 64, 0.2
+
+    def __init__(self, flip: bool = False):
+        self.flip = flip
+        self.calls = []
+
+    def __call__(self, image, terms, ridx=None):
+        self.calls.append(len(image))
+        total = terms[:, 6].astype(np.float64)  # TERM_NAMES: ... "total" ...
+        return 1.0 - total if self.flip else total
+
+
+def test_the_scorer_decides_the_leftovers_and_with_all_the_refined_check_too(lmo):
+    """ImageChecker(scorer=...): with scorer_use "leftovers" (the default) the cross-view choice
+    among leftovers is the scorer's (a scorer that agrees with the verification changes nothing,
+    its opposite turns right poses wrong) and the check of refined poses stays training-free;
+    "all" puts it there too; "none" never calls it."""
+    from cosy_cli.multiview import image_check as ic
+    from cosy_cli.geometry.rotations import rotation_about_axis
+
+    ds, db = lmo
+    s = 17
+    views = sorted(ds.scene_gt(s))
+    Twc = gt_cameras(ds, s, views)
+    gt = {v: {g.obj_id: _orthonormal(g.T_cam_obj) for g in ds.scene_gt(s)[v]} for v in views}
+    objs = [o for o in gt[views[0]] if all(o in gt[v] for v in views) and o in (1, 5, 6, 8)]
+    turn = np.eye(4)
+    turn[:3, :3] = rotation_about_axis(np.array([1.0, 0, 0]), np.array([np.pi / 2]))[0]
+    items = [ic.Leftover(v, o, gt[v][o] @ turn if k == objs.index(o) % len(views) else gt[v][o])
+             for o in objs for k, v in enumerate(views)]
+    cams = ds.scene_camera(s)
+    images, Ks = {v: ds.read_rgb(s, v) for v in views}, {v: cams[v].K for v in views}
+    assert ic.ImageCheckConf().scorer_use == "leftovers"
+    with ic.ImageChecker(db) as chk:
+        free = chk.check_leftovers(items, images, Ks, Twc)
+    same, flip = _TermScorer(), _TermScorer(flip=True)
+    with ic.ImageChecker(db, scorer=same) as chk:
+        r = chk.check_leftovers(items, images, Ks, Twc)
+    assert same.calls and (r.source == free.source).all()
+    np.testing.assert_allclose(r.T, free.T)
+    with ic.ImageChecker(db, scorer=flip) as chk:
+        r = chk.check_leftovers(items, images, Ks, Twc)
+    assert flip.calls and (r.source != free.source).any()
+    unused = _TermScorer(flip=True)
+    with ic.ImageChecker(db, ic.ImageCheckConf(scorer_use="none"), scorer=unused) as chk:
+        r = chk.check_leftovers(items, images, Ks, Twc)
+    assert not unused.calls and (r.source == free.source).all()
+    # the check of refined poses (refined 60 mm off along the ray, the GT as the candidate)
+    v = views[0]
+    shifted = _shifted_items(ds, s, v, 60.0)
+    with ic.ImageChecker(db) as chk:
+        base = chk.check(shifted, {v: images[v]}, {v: Ks[v]})
+    for use, called in (("leftovers", False), ("all", True)):
+        sc = _TermScorer()
+        with ic.ImageChecker(db, ic.ImageCheckConf(scorer_use=use), scorer=sc) as chk:
+            r = chk.check(shifted, {v: images[v]}, {v: Ks[v]})
+        assert bool(sc.calls) == called and r.choice == base.choice
+    with pytest.raises(ValueError, match="scorer_use"):
+        ic.ImageChecker(db, ic.ImageCheckConf(scorer_use="some"))

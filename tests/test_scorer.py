@@ -139,13 +139,32 @@ def test_estimate_and_run_take_a_scorer(tmp_path, tiny_scorer):
     r = _run(args + ["--scorer", str(tmp_path / "none.onnx"), "--out", str(tmp_path / "e.csv")])
     assert r.exit_code == 2 and "none.onnx" in r.output
     # cosy run passes it on to the estimate stage
-    r = _run(["run", "--scene", str(SCENE), "--from-gt", "--out", str(tmp_path / "run"), "--to", "estimate",
+    r = _run(["run", "--scene", str(SCENE), "--from-gt", "--out", str(tmp_path / "run"), "--to", "refine",
               "--templates-dir", str(tdir), "--scorer", str(out_scorer), "--set", "estimate.verify_top=8",
               "--set", "estimate.top_k=2", "--set", "estimate.coarse=templates", "--set", "estimate.refiner=none",
               "--set", "estimate.depth_refine=none", "--quiet"])
     assert r.exit_code == 0, r.output
-    cand = json.loads((tmp_path / "run" / "scenes" / "000001" / "candidates.json").read_text())
-    assert cand["inputs"]["scorer_model"]["sha1"] == doc["inputs"]["scorer_model"]["sha1"]
+    sdir = tmp_path / "run" / "scenes" / "000001"
+    cand = json.loads((sdir / "candidates.json").read_text())
+    sha1 = doc["inputs"]["scorer_model"]["sha1"]
+    assert cand["inputs"]["scorer_model"]["sha1"] == sha1
+    # ... and to the refine stage's image check (cosy refine --scorer)
+    assert json.loads((sdir / "refine" / "scene.json").read_text())["scorer_model"]["sha1"] == sha1
+    ref = ["refine", "--dataset", str(SCENE.parent.parent), "--split", "test", "--matches", str(sdir / "match"),
+           "--out", str(tmp_path / "ref")]
+    r = _run(ref + ["--scorer", str(out_scorer), "--scorer-use", "all"])
+    assert r.exit_code == 0, r.output
+    ref_doc = json.loads((tmp_path / "ref" / "scene.json").read_text())
+    assert ref_doc["scorer_model"]["sha1"] == sha1 and ref_doc["conf"]["image_check_scorer"] == "all"
+    r = _run(ref + ["--scorer", str(out_scorer), "--scorer-use", "all"])
+    assert r.exit_code == 0 and "up to date" in r.output, r.output
+    r = _run(ref)  # without the scorer: out of date, refused without --overwrite
+    assert r.exit_code == 2 and "the scorer changed" in r.output, r.output
+    r = _run(ref + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert "scorer_model" not in json.loads((tmp_path / "ref" / "scene.json").read_text())
+    r = _run(ref + ["--scorer", str(tmp_path / "none.onnx"), "--overwrite"])
+    assert r.exit_code == 2 and "none.onnx" in r.output
 
 
 def test_train_scorer_command_line_errors(tmp_path):
@@ -205,12 +224,35 @@ def test_lite0_scorer_trains_only_its_head_on_cached_maps_equal_to_inference(tin
         b = direct.logits(net, idx).numpy()
     np.testing.assert_allclose(a, b, atol=0.05 * (1 + np.abs(b).max()))  # float16 maps
     x, t = direct.inputs(idx)
-    sc = OnnxScorer(out)
-    assert sc.card["arch"] == "lite0"
-    np.testing.assert_allclose(sc(x, t), 1 / (1 + np.exp(-b)), atol=1e-5)
+    p = 1 / (1 + np.exp(-b))
+    # the exported float32 network is the torch one
+    out32 = out.with_name("scorer_fp32.onnx")
+    scorer.export(run, out32, log=lambda *_: None, precision="fp32")
+    sc = OnnxScorer(out32)
+    assert sc.card["arch"] == "lite0" and sc.card.get("precision", "fp32") == "fp32"
+    np.testing.assert_allclose(sc(x, t), p, atol=1e-5)
     # each observed crop through the trunk once (the observation of each hypothesis given): the same
-    np.testing.assert_allclose(sc(x, t, d["det"][idx]), 1 / (1 + np.exp(-b)), atol=1e-5)
+    np.testing.assert_allclose(sc(x, t, d["det"][idx]), p, atol=1e-5)
     assert 0 < sc.card["validation"]["val_pick"] <= sc.card["validation"]["val_oracle"]
+    # the default export: the trunk's convolutions in int8, close to float32 but not equal to it
+    q = OnnxScorer(out)
+    # its card: the validation measured on the int8 file, the float32 network's beside it
+    assert q.card["precision"] == "int8" and q.card["validation_fp32"] == sc.card["validation"]
+    assert 0 < q.card["validation"]["val_pick"] <= q.card["validation"]["val_oracle"]
+    import onnx
+
+    ops = {n.op_type for n in onnx.load(str(out)).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    pq = q(x, t, d["det"][idx])
+    assert not np.array_equal(pq, sc(x, t, d["det"][idx]))
+    np.testing.assert_allclose(pq, p, atol=0.1)  # on the LM-O scorer: median 0.007, 95th percentile 0.06
+    from scipy.stats import spearmanr
+
+    assert spearmanr(pq, p).correlation > 0.9  # the order of the hypotheses is what the verifier uses
+    with pytest.raises(ValueError, match="already quantized"):
+        from cosy_cli.singleview.scorer.model import quantize_trunk
+
+        quantize_trunk(out, [{}])
 
 
 def test_lite0_scorer_from_the_command_line(tmp_path, monkeypatch):

@@ -76,3 +76,21 @@ def stamp_card(path: str | Path, key: str, card: dict) -> None:
     entry.key = key
     entry.value = json.dumps(card)
     onnx.save(m, str(path))
+
+
+def update_card(path: str | Path, key: str, **fields) -> dict:
+    """Set ``fields`` in the JSON card stored under ``key`` in the ONNX file (rewritten
+    atomically); returns the new card."""
+    import onnx
+
+    from .io.atomic import atomic_path
+
+    m = onnx.load(str(path))
+    entry = next((p for p in m.metadata_props if p.key == key), None)
+    if entry is None:
+        raise CosyError(f"ONNX model has no '{key}' metadata", path=Path(path))
+    card = dict(json.loads(entry.value), **fields)
+    entry.value = json.dumps(card)
+    with atomic_path(path) as tmp:
+        onnx.save(m, str(tmp))
+    return card

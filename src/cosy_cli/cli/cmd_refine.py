@@ -58,10 +58,17 @@ from .common import dataset_options, user_errors
                    "from SIFT features (scale from the objects), where the image pair is trusted. leftovers: they "
                    "carry the leftover check's candidates across views; scene: the objects are also adjusted "
                    "again with them held; none: the objects alone (the paper) [leftovers].")
+@click.option("--scorer", "scorer_model", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Learned hypothesis scorer (`cosy train scorer`): the image check's leftover choice uses its "
+                   "score instead of the training-free verification score [none].")
+@click.option("--scorer-use", type=click.Choice(["leftovers", "all", "none"]), default=None,
+              help="With --scorer: where its score replaces the verification score: the leftover check, also the "
+                   "check of the refined poses (all), or nowhere [leftovers].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss_threshold_px, output, explained_frac,
-           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, leftover_check, feature_cameras, overwrite: bool) -> None:
+           min_agreeing, keep_unmatched, nms_mm, exclusion_frac, image_check, leftover_check, feature_cameras,
+           scorer_model, scorer_use, overwrite: bool) -> None:
     """Refine cameras and objects jointly per group (CosyPose stage 3): every object in every placed view.
 
     Writes OUT atomically; skips when OUT is complete and up to date (unless --overwrite).
@@ -75,8 +82,10 @@ def refine(dataset: Path, split: str, matches: Path, out: Path, iterations, loss
                                   output=output or ("scene+candidates" if keep_unmatched else None),
                                   explained_frac=explained_frac, min_agreeing=min_agreeing, nms_mm=nms_mm,
                                   exclusion_frac=exclusion_frac, image_check=image_check,
-                                  image_check_leftovers=leftover_check, feature_cameras=feature_cameras)
-    refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, log=console.echo)
+                                  image_check_leftovers=leftover_check, feature_cameras=feature_cameras,
+                                  image_check_scorer=scorer_use)
+    refine_stage.main(c, dataset, split, matches, out, overwrite=overwrite, scorer_model=scorer_model,
+                      log=console.echo)
 
 
 COMMANDS = [refine]

