@@ -249,15 +249,14 @@ def test_cluster_leftovers_links_one_object_across_views_and_nothing_else():
     assert sorted(ic.cluster_leftovers(two, Twc, {10: K, 11: K}, pts, wh)) == [[0, 3], [1, 2]]
 
 
-def test_leftover_with_a_wrong_rotation_takes_the_pose_that_explains_both_views(lmo):
-    """Real LM-O scene 17 (three views): each GT object is a leftover in every view, in one view
-    turned by 90 deg. The turned one takes a pose carried from another view (close to its GT),
-    the right ones keep theirs (or take an equally right one)."""
-    from cosy_cli.evaluation.pose_error import re as rot_err
+def _turned_leftovers(ds):
+    """Real LM-O scene 17 (three views): each GT object of labels 1, 5, 6, 8 seen in all views as a
+    leftover in every view, in one view (a different one per object) turned by 90 deg about x.
+    Returns (scene, views, T_world_cam of the views, GT {view: {obj_id: T}}, objects, leftovers,
+    which are turned)."""
     from cosy_cli.geometry.rotations import rotation_about_axis
     from cosy_cli.multiview import image_check as ic
 
-    ds, db = lmo
     s = 17
     views = sorted(ds.scene_gt(s))
     Twc = gt_cameras(ds, s, views)
@@ -271,6 +270,18 @@ def test_leftover_with_a_wrong_rotation_takes_the_pose_that_explains_both_views(
             bad = k == objs.index(o) % len(views)
             items.append(ic.Leftover(v, o, gt[v][o] @ turn if bad else gt[v][o]))
             wrong.append(bad)
+    return s, views, Twc, gt, objs, items, wrong
+
+
+def test_leftover_with_a_wrong_rotation_takes_the_pose_that_explains_both_views(lmo):
+    """Real LM-O scene 17 (three views): each GT object is a leftover in every view, in one view
+    turned by 90 deg. The turned one takes a pose carried from another view (close to its GT),
+    the right ones keep theirs (or take an equally right one)."""
+    from cosy_cli.evaluation.pose_error import re as rot_err
+    from cosy_cli.multiview import image_check as ic
+
+    ds, db = lmo
+    s, views, Twc, gt, objs, items, wrong = _turned_leftovers(ds)
     cams = ds.scene_camera(s)
     with ic.ImageChecker(db) as chk:
         r = chk.check_leftovers(items, {v: ds.read_rgb(s, v) for v in views}, {v: cams[v].K for v in views}, Twc)
@@ -346,18 +357,9 @@ def test_the_scorer_decides_the_leftovers_and_with_all_the_refined_check_too(lmo
     its opposite turns right poses wrong) and the check of refined poses stays training-free;
     "all" puts it there too; "none" never calls it."""
     from cosy_cli.multiview import image_check as ic
-    from cosy_cli.geometry.rotations import rotation_about_axis
 
     ds, db = lmo
-    s = 17
-    views = sorted(ds.scene_gt(s))
-    Twc = gt_cameras(ds, s, views)
-    gt = {v: {g.obj_id: _orthonormal(g.T_cam_obj) for g in ds.scene_gt(s)[v]} for v in views}
-    objs = [o for o in gt[views[0]] if all(o in gt[v] for v in views) and o in (1, 5, 6, 8)]
-    turn = np.eye(4)
-    turn[:3, :3] = rotation_about_axis(np.array([1.0, 0, 0]), np.array([np.pi / 2]))[0]
-    items = [ic.Leftover(v, o, gt[v][o] @ turn if k == objs.index(o) % len(views) else gt[v][o])
-             for o in objs for k, v in enumerate(views)]
+    s, views, Twc, _, _, items, _ = _turned_leftovers(ds)
     cams = ds.scene_camera(s)
     images, Ks = {v: ds.read_rgb(s, v) for v in views}, {v: cams[v].K for v in views}
     assert ic.ImageCheckConf().scorer_use == "leftovers"
