@@ -1109,6 +1109,10 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
                 if scorer.crop != conf["image_check_crop"]:
                     raise CosyError(f"the scorer was trained on {scorer.crop} px crops; the image check uses "
                                     f"{conf['image_check_crop']} px (refine image_check_crop)", path=scorer_model)
+                unseen = scorer.unseen(labels)
+                if unseen:
+                    log(f"refine: note: the scorer was not trained on obj_id {', '.join(map(str, unseen))}; it still "
+                        "compares their renders with the images")
             checker = ic.ImageChecker(db, ic.ImageCheckConf(align=conf["image_check_align"],
                                                             margin=conf["image_check_margin"],
                                                             align_max_move=conf["image_check_max_move"],
