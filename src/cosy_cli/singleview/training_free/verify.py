@@ -78,7 +78,7 @@ Lengths in mm; T_cam_obj 4x4 (OpenCV camera); K (3, 3) px; boxes x1, y1, x2, y2 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -181,6 +181,10 @@ class CropObservation:
     resp: np.ndarray       # (8, S, S) float32 orientation responses (LINEMOD-like, spread 3x3)
     grey: bool = False     # a grey image (three equal channels): colours are compared as grey levels
     seg: np.ndarray | None = None  # (S, S) float32 in [0, 1]: the detection's segmentation in the crop, if any
+    # what it was made of (image, K, box, mask; references, not copies): a scorer trained on another crop
+    # side observes the same detection again (Verifier.score)
+    source: tuple | None = field(default=None, repr=False, compare=False)
+    others: dict = field(default_factory=dict, repr=False, compare=False)  # crop side -> that observation
 
 
 def window_crop(src: np.ndarray, win: np.ndarray, A: np.ndarray, S: int) -> np.ndarray:
@@ -258,7 +262,7 @@ def observe(rgb: np.ndarray, K: np.ndarray, box: np.ndarray, conf: VerifyConf,
     resp = _LUT[:, spread].astype(np.float32) / 255.0
     grey = bool(np.array_equal(crop[..., 0], crop[..., 1]) and np.array_equal(crop[..., 1], crop[..., 2]))
     return CropObservation(Kc, win, bx, crop.astype(np.float32) / 255.0, dist.astype(np.float32), not_bg, in_box,
-                           resp, grey, seg)
+                           resp, grey, seg, source=(rgb, K, box, mask))
 
 
 @dataclass
@@ -286,9 +290,14 @@ class Verifier(Closing):
         # a learned scorer (:class:`~cosy_cli.singleview.scorer.runtime.OnnxScorer`): its prediction
         # replaces the weighted sum of the terms (see :mod:`cosy_cli.singleview.scorer`)
         self.scorer = scorer
-        if scorer is not None and (scorer.crop != self.conf.crop or scorer.margin != self.conf.margin):
-            raise ValueError(f"the scorer was trained on {scorer.crop} px crops with margin {scorer.margin}, "
-                             f"verification uses {self.conf.crop} px, margin {self.conf.margin}")
+        if scorer is not None and scorer.margin != self.conf.margin:
+            raise ValueError(f"the scorer was trained on crops with margin {scorer.margin}, verification uses "
+                             f"margin {self.conf.margin}")
+        # a scorer trained on another crop side scores through a verifier of its side (its own renders and
+        # terms, the detections observed again at that side); the training-free scores stay at conf.crop
+        self._learned = None
+        if scorer is not None and scorer.crop != self.conf.crop:
+            self._learned = Verifier(db, replace(self.conf, crop=int(scorer.crop)), scorer=scorer)
         self._renderers: dict[int, object] = {}
         self._coloured: dict[int, bool] = {}
         self._coarse: dict[int, bool] = {}  # obj_id -> rank() renders a coarser copy of it
@@ -320,6 +329,20 @@ class Verifier(Closing):
         for r in self._renderers.values():
             r.close()
         self._renderers = {}
+        if self._learned is not None:
+            self._learned.close()
+
+    def _observed_at(self, obs: list[CropObservation], S: int) -> list[CropObservation]:
+        """The observations ``obs`` made again at crop side ``S`` (kept on each, made once)."""
+        out = []
+        for o in obs:
+            if S not in o.others:
+                if o.source is None:
+                    raise ValueError(f"an observation without its source image cannot be observed at {S} px")
+                rgb, K, box, mask = o.source
+                o.others[S] = observe(rgb, K, box, replace(self.conf, crop=S), mask)
+            out.append(o.others[S])
+        return out
 
     # ------------------------------------------------------------------ scoring
 
@@ -340,6 +363,14 @@ class Verifier(Closing):
         One render of all n hypotheses; the terms are computed on the rendered pixels only (edge
         pixels, silhouette pixels), gathered as flat index arrays."""
         c = self.conf
+        if learned is None:
+            learned = c.scorer_scope == "all"
+        if learned and self._learned is not None and not inputs:
+            # only the obs that are used are observed again
+            used = np.unique(np.asarray(det, np.int64))
+            again = dict(zip(used.tolist(), self._observed_at([obs[d] for d in used], self._learned.conf.crop)))
+            obs2 = [again.get(d) for d in range(len(obs))]
+            return self._learned.score(obs2, det, obj_ids, T, prior, terms=terms, max_faces=max_faces, learned=True)
         S = c.crop
         SS = S * S
         n = len(T)
@@ -462,8 +493,6 @@ class Verifier(Closing):
         total = np.where(has, total, 0.0)
         term_arrays = {"orient": o_score, "edge": e_score, "colour": c_score, "region": r_score, "box": b_score,
                        "mask": m_score}
-        if learned is None:
-            learned = self.conf.scorer_scope == "all"
         if (self.scorer is not None and learned) or inputs:
             from ..scorer.features import assemble, term_vector
 
