@@ -1105,10 +1105,7 @@ def main(conf: dict | None, dataset: str | Path, split: str, matches: str | Path
                 from ..onnxrt import provider_names
                 from ..singleview.scorer.runtime import OnnxScorer
 
-                scorer = OnnxScorer(scorer_model, provider_names("cpu"))
-                if scorer.crop != conf["image_check_crop"]:
-                    raise CosyError(f"the scorer was trained on {scorer.crop} px crops; the image check uses "
-                                    f"{conf['image_check_crop']} px (refine image_check_crop)", path=scorer_model)
+                scorer = OnnxScorer(scorer_model, provider_names("cpu"))  # of any crop side (see verify.Verifier)
                 unseen = scorer.unseen(labels)
                 if unseen:
                     log(f"refine: note: the scorer was not trained on obj_id {', '.join(map(str, unseen))}; it still "
