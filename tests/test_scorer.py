@@ -182,8 +182,9 @@ def test_train_scorer_command_line_errors(tmp_path):
         assert r.exit_code == 2 and word in r.output and not (tmp_path / "s.run").exists()
 
 
-def test_scorer_data_at_another_crop_side(tmp_path):
-    """The crop setting: the shards hold what a verifier of that side renders and observes."""
+def test_scorer_data_at_another_crop_side_and_on_photographs(tmp_path):
+    """The crop setting: the shards hold what a verifier of that side renders and observes. The
+    backgrounds setting: the same shard with photographs behind the objects differs."""
     from cosy_cli.objects import ObjectDatabase
     from cosy_cli.singleview.estimate_stage import ensure_templates
     from cosy_cli.singleview.training_free.templates import TemplateSet
@@ -203,6 +204,24 @@ def test_scorer_data_at_another_crop_side(tmp_path):
     n = len(d["target"])
     assert maker.verifier.conf.crop == 48 and n > 0
     assert d["rgba"].shape == (n, 48, 48, 4) and d["obs_rgb"].shape[1:] == (48, 48, 3)
+    import cv2
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):  # a smooth random picture, not noise
+        small = rng.integers(0, 255, (6, 8, 3), dtype=np.uint8)
+        cv2.imwrite(str(photos / f"p{i}.png"), cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC))
+    c2 = scorer.resolve_conf(dict(c, p_photo=1.0, p_photo_texture=0.0), backgrounds=photos)
+    assert c2["backgrounds"] == str(photos.resolve())
+    maker = ShardMaker(ObjectDatabase.from_models_dir(SAMPLES / "models"), TemplateSet.load(tmp_path / "t"), K,
+                       (640, 480), c2)
+    try:
+        d2 = maker.make(0)
+    finally:
+        maker.close()
+    assert len(maker.photos["photos"]) == 2 and d2["obs_rgb"].shape[1:] == (48, 48, 3)
+    assert not np.array_equal(d2["obs_rgb"][:1], d["obs_rgb"][:1])
 
 
 @pytest.fixture(scope="module")

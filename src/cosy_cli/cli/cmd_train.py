@@ -123,7 +123,7 @@ PRESETS = {"scorer": ("default", "long", "plain"), "detector": ("default", "real
 @click.option("--p-pair", type=click.FloatRange(0, 1), default=None,
               help="Detector only: probability that an image holds a --confusable pair [0; 0.5 with --confusable].")
 @click.option("--backgrounds", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Detector, classifier: a folder of photographs (png, jpg) without the objects (any scenes: your "
+              help="Detector, classifier, scorer: a folder of photographs (png, jpg) without the objects (any scenes: your "
                    "workspace, a photo collection); random windows of them are the background of half the "
                    "rendered images, the largest gain on real photographs [procedural backgrounds only].")
 @click.option("--distance", callback=distance_range, default=None,
@@ -170,8 +170,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, precision, split, o
     if preset is not None and preset not in PRESETS[kind]:
         raise click.UsageError(f"--preset {preset} is not a preset of the {kind} (its presets: "
                                f"{', '.join(PRESETS[kind]) or 'none'})")
-    if backgrounds is not None and kind not in ("detector", "classifier"):
-        raise click.UsageError("--backgrounds is for the detector and the box classifier")
+    if backgrounds is not None and kind not in ("detector", "classifier", "scorer"):
+        raise click.UsageError("--backgrounds is for the detector, the box classifier and the scorer")
     if distance is not None and kind not in ("detector", "classifier"):
         raise click.UsageError("--distance is for the detector and the box classifier")
     if precision is not None and kind != "scorer":
@@ -188,7 +188,7 @@ def train(kind, dataset, models_dir, camera, preset, shards, precision, split, o
         from ..training import scorer as scorer_train
 
         conf = scorer_train.resolve_conf(preset, arch=SCORER_BACKBONES.get(backbone), shards=shards,
-                                         crop=None if crop is None else crop[0],
+                                         crop=None if crop is None else crop[0], backgrounds=backgrounds,
                                          iterations=iterations, batch_size=batch_size, lr=lr, precision=precision,
                                          warmup=warmup, schedule=schedule, device=device, workers=workers, seed=seed,
                                          checkpoint_every=checkpoint_every)

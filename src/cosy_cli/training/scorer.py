@@ -84,7 +84,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["saturation"] = [float(v) for v in c["saturation"]]
         c["blur"] = [float(v) for v in c["blur"]]
         for k in ("lr", "weight_decay", "rank_weight", "rank_temperature", "min_visib", "box_jitter", "p_exact_box",
-                  "p_mesh_colors", "gain_jitter"):
+                  "p_mesh_colors", "gain_jitter", "p_photo", "p_photo_texture"):
             c[k] = float(c[k])
         c["widths"] = None if c["widths"] is None else [int(w) for w in c["widths"]]
     except (TypeError, ValueError) as e:
@@ -95,6 +95,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
             or c["rank_weight"] < 0 or c["rank_temperature"] <= 0:
         raise CosyError("scorer training settings out of range (shards, val_shards, iterations, images_per_shard, "
                         "verify_top >= 1; batch_size >= 2 detections; lr, rank_temperature > 0; rank_weight >= 0)")
+    if c["backgrounds"] is not None:
+        c["backgrounds"] = str(Path(c["backgrounds"]).resolve())
     if not (32 <= c["crop"] <= 256 and c["crop"] % 16 == 0):
         raise CosyError(f"scorer training setting crop: a side of 32 to 256 px, a multiple of 16, got {c['crop']}")
     from ..singleview.scorer.model import ARCHS
@@ -321,6 +323,11 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     tdir = run / "templates"
     ensure_templates(models_dir, tdir, log=log)
     n_tr, n_val = c["shards"], c["val_shards"]
+    if c["backgrounds"]:
+        from ..io.images import read_photo_folder
+
+        log(f"train scorer: {len(read_photo_folder(c['backgrounds']))} background photographs from {c['backgrounds']} "
+            f"(behind the objects in {c['p_photo']:.0%} of the images, on {c['p_photo_texture']:.0%} of the surfaces)")
     t0 = time.time()
     write_shards(models_dir, tdir, K, size, dict(c), run / "shards", range(n_tr + n_val), workers=c["workers"],
                  progress=progress)

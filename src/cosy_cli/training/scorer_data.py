@@ -4,7 +4,9 @@ One shard: ``images`` rendered scenes of the dataset's objects from the detector
 (:class:`~cosy_cli.detection.data.DetectionSampleGenerator`: objects resting on a table or floating,
 occluded by each other, random backgrounds, lights, colour noise, blur and sensor noise; with
 probability ``p_mesh_colors`` an object of a coloured mesh keeps its own colours, as a real object
-does), among up to ``max_distractors`` unlabelled shapes of ``cosy synth`` as clutter, with a
+does), among up to ``max_distractors`` unlabelled shapes of ``cosy synth`` as clutter (with
+``backgrounds``, a folder of photographs: windows of them behind ``p_photo`` of the images and on
+``p_photo_texture`` of the surfaces), with a
 stronger white-balance (``gain_jitter``), saturation and blur jitter than the detector's, at the
 dataset camera's full image size. Every object at least ``min_visib`` visible is a
 detection, its box the visible box moved by N(0, ``box_jitter`` x its size) per edge (what a
@@ -49,6 +51,9 @@ DATA_DEFAULTS = {
     "saturation": [0.6, 1.3],
     "blur": [0.6, 0.4, 1.5],       # probability, sigma range (px of the full image)
     "n_points": 300,
+    "backgrounds": None,           # a folder of photographs: random windows of them behind the objects ...
+    "p_photo": 0.5,                # ... in this share of the images
+    "p_photo_texture": 0.5,        # ... and on this share of the table and clutter surfaces
 }
 
 
@@ -116,6 +121,12 @@ class ShardMaker:
             self.points[o.obj_id] = P
         self.sym = {o.obj_id: np.asarray(o.symmetries, np.float64) for o in db}
         self.diam = {o.obj_id: float(o.diameter) for o in db}
+        self.photos = {}
+        if conf.get("backgrounds"):
+            from ..io.images import read_photo_folder
+
+            self.photos = dict(photos=read_photo_folder(conf["backgrounds"]), p_photo=float(conf["p_photo"]),
+                               p_photo_texture=float(conf["p_photo_texture"]))
 
     def close(self):
         self.verifier.close()
@@ -133,7 +144,8 @@ class ShardMaker:
                                        min_objects=c["min_objects"],
                                        min_visib=c["min_visib"], p_mesh_colors=c["p_mesh_colors"],
                                        distractors=self.distractors, max_distractors=c["max_distractors"],
-                                       gain_jitter=c["gain_jitter"], saturation=c["saturation"], blur=c["blur"])
+                                       gain_jitter=c["gain_jitter"], saturation=c["saturation"], blur=c["blur"],
+                                       **self.photos)
         try:
             b = gen.batch(int(c["images_per_shard"]))
         finally:
