@@ -195,12 +195,16 @@ def test_scorer_data_at_another_crop_side_and_on_photographs(tmp_path):
     assert c["crop"] == 48 and scorer.resolve_conf(None)["crop"] == 64
     ensure_templates(SAMPLES / "models", tmp_path / "t", log=lambda *_: None)
     K = np.array([[572.0, 0, 320], [0, 572.0, 240], [0, 0, 1]])
-    maker = ShardMaker(ObjectDatabase.from_models_dir(SAMPLES / "models"), TemplateSet.load(tmp_path / "t"), K,
-                       (640, 480), c)
-    try:
-        d = maker.make(0)
-    finally:
-        maker.close()
+
+    def shard_zero(conf):
+        maker = ShardMaker(ObjectDatabase.from_models_dir(SAMPLES / "models"), TemplateSet.load(tmp_path / "t"), K,
+                           (640, 480), conf)
+        try:
+            return maker, maker.make(0)
+        finally:
+            maker.close()
+
+    maker, d = shard_zero(c)
     n = len(d["target"])
     assert maker.verifier.conf.crop == 48 and n > 0
     assert d["rgba"].shape == (n, 48, 48, 4) and d["obs_rgb"].shape[1:] == (48, 48, 3)
@@ -214,12 +218,7 @@ def test_scorer_data_at_another_crop_side_and_on_photographs(tmp_path):
         cv2.imwrite(str(photos / f"p{i}.png"), cv2.resize(small, (320, 240), interpolation=cv2.INTER_CUBIC))
     c2 = scorer.resolve_conf(dict(c, p_photo=1.0, p_photo_texture=0.0), backgrounds=photos)
     assert c2["backgrounds"] == str(photos.resolve())
-    maker = ShardMaker(ObjectDatabase.from_models_dir(SAMPLES / "models"), TemplateSet.load(tmp_path / "t"), K,
-                       (640, 480), c2)
-    try:
-        d2 = maker.make(0)
-    finally:
-        maker.close()
+    maker, d2 = shard_zero(c2)
     assert len(maker.photos["photos"]) == 2 and d2["obs_rgb"].shape[1:] == (48, 48, 3)
     assert not np.array_equal(d2["obs_rgb"][:1], d["obs_rgb"][:1])
 
@@ -321,16 +320,11 @@ def test_lite0_scorer_from_the_command_line(tmp_path, monkeypatch):
         scorer.resolve_conf(None, arch="resnet")
 
 
-def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
-    """scorer_scope "rank": rank() orders each detection's best scorer_keep (by the training-free score)
-    by the scorer's predictions; the others keep their training-free scores; score() stays
-    training-free unless asked. A wrong scope in the estimate settings is named."""
-    from cosy_cli.errors import CosyError
+def _two_detections(seed):
+    """The sample image of scene 1, its first two objects' visible GT boxes, and six hypotheses of
+    each: the GT pose first, then five turned and shifted at random (``seed``)."""
     from cosy_cli.io.dataset import BopDataset
     from cosy_cli.objects import ObjectDatabase
-    from cosy_cli.singleview import estimate_stage
-    from cosy_cli.singleview.scorer.runtime import OnnxScorer
-    from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf
 
     ds = BopDataset(SAMPLES, "test")
     gt = ds.scene_gt(1)[0][:2]
@@ -340,10 +334,23 @@ def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
     boxes = np.array([[b.bbox_visib[0], b.bbox_visib[1], b.bbox_visib[0] + b.bbox_visib[2],
                        b.bbox_visib[1] + b.bbox_visib[3]] for b in info], float)
     obj = np.array([g.obj_id for g in gt])
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     T = np.repeat(np.stack([g.T_cam_obj for g in gt])[:, None], 6, 1)
     T[:, 1:, :3, :3] = axis_angle_to_matrix(rng.normal(size=(2, 5, 3)) * 0.4) @ T[:, 1:, :3, :3]
     T[:, 1:, :3, 3] += rng.normal(size=(2, 5, 3)) * 6
+    return rgb, K, db, boxes, obj, T
+
+
+def test_scorer_scope_rank_orders_only_the_final_hypotheses(tiny_scorer):
+    """scorer_scope "rank": rank() orders each detection's best scorer_keep (by the training-free score)
+    by the scorer's predictions; the others keep their training-free scores; score() stays
+    training-free unless asked. A wrong scope in the estimate settings is named."""
+    from cosy_cli.errors import CosyError
+    from cosy_cli.singleview import estimate_stage
+    from cosy_cli.singleview.scorer.runtime import OnnxScorer
+    from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf
+
+    rgb, K, db, boxes, obj, T = _two_detections(seed=0)
     conf = VerifyConf(scorer_scope="rank", scorer_keep=3, rank_faces=0)
     with Verifier(db, conf, scorer=OnnxScorer(tiny_scorer[0])) as v:
         r = v.rank(rgb, K, boxes, obj, T)
@@ -381,22 +388,9 @@ def test_a_scorer_of_another_crop_side_scores_through_its_own_verifier():
     """A scorer trained on 96 px crops behind 64 px verification: rank() orders by its predictions on
     the detections observed again at 96 px (its own renders and terms), the training-free scores stay
     at 64 px, and its scores are those of a 96 px verifier."""
-    from cosy_cli.io.dataset import BopDataset
-    from cosy_cli.objects import ObjectDatabase
     from cosy_cli.singleview.training_free.verify import Verifier, VerifyConf, observe
 
-    ds = BopDataset(SAMPLES, "test")
-    gt = ds.scene_gt(1)[0][:2]
-    rgb, K = ds.read_rgb(1, 0), ds.scene_camera(1)[0].K
-    db = ObjectDatabase.from_models_dir(SAMPLES / "models")
-    info = ds.scene_gt_info(1)[0][:2]
-    boxes = np.array([[b.bbox_visib[0], b.bbox_visib[1], b.bbox_visib[0] + b.bbox_visib[2],
-                       b.bbox_visib[1] + b.bbox_visib[3]] for b in info], float)
-    obj = np.array([g.obj_id for g in gt])
-    rng = np.random.default_rng(1)
-    T = np.repeat(np.stack([g.T_cam_obj for g in gt])[:, None], 6, 1)
-    T[:, 1:, :3, :3] = axis_angle_to_matrix(rng.normal(size=(2, 5, 3)) * 0.4) @ T[:, 1:, :3, :3]
-    T[:, 1:, :3, 3] += rng.normal(size=(2, 5, 3)) * 6
+    rgb, K, db, boxes, obj, T = _two_detections(seed=1)
     conf = VerifyConf(scorer_scope="rank", scorer_keep=3, rank_faces=0)
     side = _SideScorer(96)
     det = np.repeat(np.arange(2), 3)
