@@ -425,7 +425,7 @@ def test_detector_onboarding_from_meshes_alone_with_the_real_preset(tmp_path):
                       (["train", "refiner", "--models", str(DATA / "models"), "--dataset", str(DATA), "--out",
                         str(tmp_path / "r")], "--models and --camera are for"),
                       (["train", "coarse", "--dataset", str(DATA), "--backgrounds", str(photos), "--out",
-                        str(tmp_path / "c")], "--backgrounds is for the detector and the box classifier"),
+                        str(tmp_path / "c")], "--backgrounds is for the detector, the box classifier and the scorer"),
                       ([a if a != str(out) else str(tmp_path / "r2") for a in args[:-2]] + ["--backgrounds",
                        str(DATA / "models")], "no image")):
         r = CliRunner().invoke(cli, bad)
