@@ -174,18 +174,33 @@ def appearance_kwargs(conf: dict, log: Callable[[str], None] = print, what: str 
         kw.update(distractors=distractors, max_distractors=conf["max_distractors"])
         if conf["backdrop"][0] > 0:  # else the generator's default: the stream of earlier runs unchanged
             kw.update(backdrop=tuple(conf["backdrop"]))
-    if conf["backgrounds"] and (conf["p_photo"] > 0 or conf["p_photo_texture"] > 0):
-        from ..io.images import read_photo_folder
+    photos = photo_kwargs(conf)
+    if photos:
+        kw.update(photos)
+        log(photo_note(conf, len(photos["photos"]), what))
+    return kw
 
-        photos = read_photo_folder(conf["backgrounds"])
-        kw.update(photos=photos, p_photo=conf["p_photo"])
-        if conf["p_photo_texture"] > 0:  # else the generator's default: the stream of earlier runs unchanged
-            kw.update(p_photo_texture=conf["p_photo_texture"])
-        log(f"{what}: {len(photos)} background photographs from {conf['backgrounds']} "
-            f"(on {conf['p_photo']:.0%} of the images"
+
+def photo_kwargs(conf: dict) -> dict:
+    """The :class:`DetectionSampleGenerator` keyword arguments of ``conf``'s ``backgrounds`` (a
+    folder of photographs), ``p_photo`` and ``p_photo_texture`` (only when it is not 0, the
+    generator's default: the stream of earlier runs unchanged); reads the photographs. Empty
+    without photographs or when both shares are 0."""
+    if not conf.get("backgrounds") or not (conf["p_photo"] > 0 or conf["p_photo_texture"] > 0):
+        return {}
+    from ..io.images import read_photo_folder
+
+    kw = dict(photos=read_photo_folder(conf["backgrounds"]), p_photo=conf["p_photo"])
+    if conf["p_photo_texture"] > 0:
+        kw.update(p_photo_texture=conf["p_photo_texture"])
+    return kw
+
+
+def photo_note(conf: dict, n: int, what: str) -> str:
+    """The line that says which ``n`` photographs ``conf`` puts where."""
+    return (f"{what}: {n} background photographs from {conf['backgrounds']} (on {conf['p_photo']:.0%} of the images"
             + (f"; on {conf['p_photo_texture']:.0%} of the table and clutter surfaces" if conf["p_photo_texture"] else "")
             + ")")
-    return kw
 
 
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:

@@ -44,17 +44,23 @@ def read_mask(path: str | Path) -> np.ndarray:
     return img > 0
 
 
-def read_photo_folder(folder: str | Path, max_side: int = 800) -> list[np.ndarray]:
-    """Every image of ``folder`` (png, jpg, tif; sorted by name; not its subfolders) as (H, W, 3)
-    uint8 RGB, shrunk so that its longer side is at most ``max_side`` px."""
+def photo_files(folder: str | Path) -> list[Path]:
+    """The image files of ``folder`` (png, jpg, tif; sorted by name; not its subfolders); a missing
+    folder or one without images is an error naming it."""
     folder = Path(folder)
     if not folder.is_dir():
         raise CosyError("folder of photographs not found", path=folder)
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
     if not files:
         raise CosyError(f"no image ({', '.join(IMAGE_EXTENSIONS)}) in this folder", path=folder)
+    return files
+
+
+def read_photo_folder(folder: str | Path, max_side: int = 800) -> list[np.ndarray]:
+    """Every image of ``folder`` (:func:`photo_files`) as (H, W, 3) uint8 RGB, shrunk so that its
+    longer side is at most ``max_side`` px."""
     out = []
-    for f in files:
+    for f in photo_files(folder):
         img = read_rgb(f)
         s = max_side / max(img.shape[:2])
         if s < 1:

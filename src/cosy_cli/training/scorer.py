@@ -304,9 +304,8 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     db = ObjectDatabase.from_models_dir(models_dir)
     if len(db) == 0:
         raise CosyError("no objects in models_info.json", path=models_dir / "models_info.json")
-    vc = VerifyConf(crop=c["crop"])
     record = dict(c, models=str(models_dir.resolve()), models_info_sha1=_sha1(models_dir / "models_info.json"),
-                  K=np.asarray(K).tolist(), image_size=list(size), crop=vc.crop, margin=vc.margin)
+                  K=np.asarray(K).tolist(), image_size=list(size), margin=VerifyConf.margin)
     if overwrite and run.is_dir():
         import shutil
 
@@ -323,11 +322,11 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, overw
     tdir = run / "templates"
     ensure_templates(models_dir, tdir, log=log)
     n_tr, n_val = c["shards"], c["val_shards"]
-    if c["backgrounds"]:
-        from ..io.images import read_photo_folder
+    if c["backgrounds"]:  # the shard makers read them (each worker its own copy)
+        from ..detection.train import photo_note
+        from ..io.images import photo_files
 
-        log(f"train scorer: {len(read_photo_folder(c['backgrounds']))} background photographs from {c['backgrounds']} "
-            f"(behind the objects in {c['p_photo']:.0%} of the images, on {c['p_photo_texture']:.0%} of the surfaces)")
+        log(photo_note(c, len(photo_files(c["backgrounds"])), "train scorer"))
     t0 = time.time()
     write_shards(models_dir, tdir, K, size, dict(c), run / "shards", range(n_tr + n_val), workers=c["workers"],
                  progress=progress)

@@ -106,7 +106,7 @@ class ShardMaker:
         self.db, self.templates, self.conf = db, templates, conf
         self.K = np.asarray(K, np.float64)
         self.image_size = (int(image_size[0]), int(image_size[1]))
-        self.verifier = Verifier(db, verify_conf or VerifyConf(crop=int(conf.get("crop", VerifyConf.crop))))
+        self.verifier = Verifier(db, verify_conf or VerifyConf(crop=int(conf["crop"])))
         self.meshes = {o.obj_id: o.mesh for o in db}
         from ..synth.objects import object_meshes
 
@@ -121,12 +121,9 @@ class ShardMaker:
             self.points[o.obj_id] = P
         self.sym = {o.obj_id: np.asarray(o.symmetries, np.float64) for o in db}
         self.diam = {o.obj_id: float(o.diameter) for o in db}
-        self.photos = {}
-        if conf.get("backgrounds"):
-            from ..io.images import read_photo_folder
+        from ..detection.train import photo_kwargs
 
-            self.photos = dict(photos=read_photo_folder(conf["backgrounds"]), p_photo=float(conf["p_photo"]),
-                               p_photo_texture=float(conf["p_photo_texture"]))
+        self.photos = photo_kwargs(conf)
 
     def close(self):
         self.verifier.close()
