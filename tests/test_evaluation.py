@@ -723,3 +723,62 @@ def test_evaluate_reports_intervals(dataset, evaluated):
         lo, hi = ci[k]
         assert 0 <= lo <= scores[k] <= hi <= 1, (k, lo, scores[k], hi)
     assert json.loads((out / "scores.json").read_text())["bop19_ci"] == ci
+
+
+# --------------------------------------------------------------------------------------------
+# oracle poses (cosy evaluate --oracle)
+# --------------------------------------------------------------------------------------------
+def test_oracle_poses_by_hand():
+    from cosy_cli.evaluation import oracle
+
+    Tg = make_pose(rot([1, 2, 3], 40), (30.0, -20.0, 800.0))
+    Te = make_pose(rot([0, 1, 0], 25), (36.0, -21.0, 880.0))
+    Td = oracle.with_gt_depth(Te, Tg)[0]
+    assert Td[2, 3] == pytest.approx(800.0)
+    assert Td[:2, 3] / Td[2, 3] == pytest.approx(Te[:2, 3] / Te[2, 3])  # the origin's projection kept
+    assert np.array_equal(Td[:3, :3], Te[:3, :3])
+    behind = make_pose(np.eye(3), (0.0, 0.0, -5.0))
+    assert np.array_equal(oracle.with_gt_depth(behind, Tg)[0][:3, 3], Tg[:3, 3])
+    Tr = oracle.oracle_poses("rotation", Te, Tg)[0]
+    assert np.array_equal(Tr[:3, :3], Tg[:3, :3]) and np.array_equal(Tr[:3, 3], Te[:3, 3])
+    Tt = oracle.oracle_poses("translation", np.stack([Te, Te]), np.stack([Tg, Tg]))
+    assert Tt.shape == (2, 4, 4) and np.array_equal(Tt[1][:3, 3], Tg[:3, 3]) and np.array_equal(Tt[1][:3, :3], Te[:3, :3])
+    assert np.array_equal(Te[2, 3], 880.0)  # the inputs are not modified
+    with pytest.raises(ValueError, match="expected one of depth, rotation, translation"):
+        oracle.oracle_poses("scale", Te, Tg)
+
+
+def test_evaluate_oracle(dataset, evaluated, tmp_path):
+    """--oracle: each pair is scored with that part of the estimate from its GT; e1 (7 mm along z)
+    is almost exact with the GT depth, e6 (10 degrees about the box's centre) with the GT rotation,
+    e12 (20 mm along x) exact with the GT translation; recorded, and another oracle is another output."""
+    _, plain, errs = evaluated
+
+    def pair(table, e, g):
+        return table[(table["est_index"] == e) & (table["gt_index"] == g)].iloc[0]
+
+    got = {}
+    for kind in ("depth", "rotation", "translation"):
+        r = CliRunner().invoke(cli, ["evaluate", "--dataset", str(dataset), "--predictions", str(dataset / "pred.csv"),
+                                     "--out", str(tmp_path / kind), "--no-vsd", "--oracle", kind])
+        assert r.exit_code == 0, r.output
+        assert f"oracle {kind}" in r.output
+        got[kind] = pd.read_csv(tmp_path / kind / "errors.csv")
+        s = json.loads((tmp_path / kind / "scores.json").read_text())
+        assert s["oracle"]["kind"] == kind and s["inputs"]["oracle"] == kind
+        assert len(got[kind]) == len(errs)
+    assert pair(errs, 1, 1)["mssd"] == pytest.approx(7.0, abs=1e-6)
+    assert pair(got["depth"], 1, 1)["mssd"] < 1.0
+    assert pair(got["depth"], 12, 2)["mssd"] > 19.0  # a lateral error stays
+    assert pair(got["rotation"], 6, 1)["mssd"] < 1.0 < pair(errs, 6, 1)["mssd"]
+    assert pair(got["translation"], 12, 2)["mssd"] == pytest.approx(0.0, abs=1e-9)
+    assert pair(got["translation"], 12, 2)["re"] == pytest.approx(pair(errs, 12, 2)["re"])
+    assert json.loads((tmp_path / "translation" / "scores.json").read_text())["bop19_average_recall_mssd"] \
+        > plain["bop19_average_recall_mssd"]
+    # the same folder with another oracle is stale: refused without --overwrite
+    r = CliRunner().invoke(cli, ["evaluate", "--dataset", str(dataset), "--predictions", str(dataset / "pred.csv"),
+                                 "--out", str(tmp_path / "depth"), "--no-vsd", "--oracle", "rotation"])
+    assert r.exit_code == 2 and "--overwrite" in r.output
+    r = CliRunner().invoke(cli, ["evaluate", "--dataset", str(dataset), "--predictions", str(dataset / "pred.csv"),
+                                 "--out", str(tmp_path / "x"), "--oracle", "scale"])
+    assert r.exit_code == 2 and "scale" in r.output

@@ -35,10 +35,14 @@ from .common import dataset_options, user_errors
 @click.option("--vsd-delta", type=click.FloatRange(min=0, min_open=True), default=None,
               help="VSD visibility tolerance, mm [15; the toolkit uses 5 for ITODD].")
 @click.option("--no-vsd", is_flag=True, help="Skip VSD (no rendering): BOP19 reports MSSD and MSPD only.")
+@click.option("--oracle", type=click.Choice(["depth", "rotation", "translation"]), default=None,
+              help="Diagnostic, not a BOP score: score each estimate with its distance along its ray (depth), its "
+                   "rotation or its translation taken from the GT instance it is compared with: what the "
+                   "estimates would reach were that part exact.")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is complete.")
 @user_errors
 def evaluate(dataset: Path, split: str, predictions: Path, out: Path, targets, metrics: str, scene_ids, scene_json,
-             models_dir: str, vsd_delta, no_vsd: bool, overwrite: bool) -> None:
+             models_dir: str, vsd_delta, no_vsd: bool, oracle, overwrite: bool) -> None:
     """Evaluate pose predictions: BOP19 (VSD, MSSD, MSPD), CosyPose AUC (ADD-S, ADD(-S)) and, on request, BOP24
     (MSSD, MSPD average precision). Lengths in mm."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -46,7 +50,8 @@ def evaluate(dataset: Path, split: str, predictions: Path, out: Path, targets, m
 
     conf = evaluate_stage.resolve_conf("bop19", vsd_delta=vsd_delta, vsd=False if no_vsd else None)
     evaluate_stage.main(conf, dataset, split, predictions, out, overwrite=overwrite, targets=targets, metrics=metrics,
-                        scene_json=scene_json, models_dir=models_dir, scene_ids=list(scene_ids) or None, log=console.echo)
+                        scene_json=scene_json, models_dir=models_dir, scene_ids=list(scene_ids) or None, oracle=oracle,
+                        log=console.echo)
 
 
 COMMANDS = [evaluate]

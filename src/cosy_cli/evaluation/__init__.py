@@ -1,5 +1,5 @@
 """Evaluation: pure pose-error functions (:mod:`.pose_error`), the BOP19 and CosyPose AUC protocols
-(:mod:`.protocols`), BOP 2024 6D detection AP (:mod:`.bop24`), the ``cosy evaluate`` stage
+(:mod:`.protocols`), BOP 2024 6D detection AP (:mod:`.bop24`), oracle poses for diagnosis (:mod:`.oracle`), the ``cosy evaluate`` stage
 (:mod:`.evaluate_stage`) and its report (:mod:`.plots`).
 
     from cosy_cli.evaluation import add, adi, mssd, mspd, re, te, vsd   # mm / px / degrees

@@ -30,6 +30,11 @@ Output folder (built atomically):
 ``manifest.json``
     sha1 and size of the files above (:mod:`cosy_cli.io.manifest`).
 
+With ``oracle`` (``cosy evaluate --oracle depth|rotation|translation``), every (estimate, GT) pair is
+scored with the estimate's distance along its ray, its rotation or its translation taken from that
+pair's GT (:mod:`.oracle`): the scores the estimates would reach were that part exact, recorded
+under ``scores.json`` ``oracle`` and in the report's title. A diagnostic, not a BOP score.
+
 Predictions (and scene.json) written by a cosy stage are checked against that stage's
 manifest first: a file changed or truncated since is refused.
 """
@@ -48,8 +53,9 @@ from ..conf import as_bool, merge_conf
 from ..errors import CosyError
 from ..io import atomic, bop, cache, manifest
 from ..io.dataset import BopDataset
-from . import bop24 as bop24_protocol, pose_error, protocols
+from . import bop24 as bop24_protocol, oracle as oracle_poses, pose_error, protocols
 
+ORACLE_PART = {"depth": "distance along its ray", "rotation": "rotation", "translation": "translation"}
 OUTPUT_FILES = ("errors.csv", "scores.json", "curves.csv", "gt_errors.csv", "report.png")
 KNOWN_METRICS = ("bop19", "bop24", "auc", "vivo")
 DEFAULT_METRICS = ("bop19", "auc")
@@ -383,12 +389,17 @@ def _clean(x):
 
 def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: str | Path, overwrite: bool = False, *,
          targets: str | Path | None = None, metrics=None, scene_json: str | Path | None = None,
-         models_dir: str | Path | None = None, scene_ids=None, log=print, progress: bool = True) -> dict | None:
+         models_dir: str | Path | None = None, scene_ids=None, oracle: str | None = None, log=print,
+         progress: bool = True) -> dict | None:
     """Run ``cosy evaluate``; returns the scores dict (None when skipped: ``out`` complete and up to date).
-    ``scene_ids``: evaluate only these scenes (GT and targets of the others are ignored)."""
+    ``scene_ids``: evaluate only these scenes (GT and targets of the others are ignored). ``oracle``
+    (one of :data:`~cosy_cli.evaluation.oracle.ORACLES`): each estimate is scored with that part of its
+    pose taken from the GT instance it is compared with (a diagnostic: :mod:`.oracle`)."""
     t0 = time.time()
     conf = resolve_conf(conf)
     metrics = parse_metrics(metrics)
+    if oracle is not None and oracle not in oracle_poses.ORACLES:
+        raise CosyError(f"oracle: expected one of {', '.join(oracle_poses.ORACLES)}, got {oracle!r}")
     out = Path(out)
     predictions = Path(predictions)
     inputs = {"version": __version__, "dataset": str(Path(dataset).resolve()), "split": split,
@@ -399,6 +410,8 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
               "metrics": metrics, "conf": conf}
     if scene_ids is not None:
         inputs["scene_ids"] = sorted(int(x) for x in scene_ids)
+    if oracle is not None:
+        inputs["oracle"] = oracle
     # the settings are part of ``inputs`` (recorded under scores.json "inputs")
     if cache.reuse_existing_output(out, "evaluate", OUTPUT_FILES, overwrite,
                                    lambda: cache.sidecar_stale_reasons(out / "scores.json", None, inputs), log):
@@ -450,7 +463,13 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
     K = np.stack([cams[(s, i)].K for s, i in zip(est_gt["scene_id"], est_gt["im_id"])]) if len(est_gt) \
         else np.zeros((0, 3, 3))
     log(f"evaluate: {len(est)} estimates, {len(gt)} GT instances, {len(est_gt)} (estimate, GT) pairs")
-    errs = compute_errors(est_gt, res.T_cam_obj, T_gt, K, db, n_steps, progress=progress)
+    T_est = res.T_cam_obj
+    if oracle is not None:  # one pose per pair: the estimate with the oracle's part from that pair's GT
+        T_est = oracle_poses.oracle_poses(oracle, T_est[est_gt["est_row"].to_numpy()], T_gt[est_gt["gt_row"].to_numpy()])
+        est_gt["est_row"] = np.arange(len(est_gt))
+        log(f"evaluate: oracle {oracle}: each estimate's {ORACLE_PART[oracle]} from the GT it is compared with "
+            "(a diagnostic, not a BOP score)")
+    errs = compute_errors(est_gt, T_est, T_gt, K, db, n_steps, progress=progress)
     table = pd.concat([est_gt[["scene_id", "im_id", "obj_id", "est_index", "gt_index"]], errs], axis=1)
 
     scores: dict = {}
@@ -471,7 +490,7 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
             mask = est_gt["est_index"].isin(set(sel["est_index"])).to_numpy() & np.array(
                 [k in vkeys for k in zip(est_gt["scene_id"], est_gt["im_id"], est_gt["gt_index"])], dtype=bool)
             need = est_gt[mask]  # index = row of the errors table
-            vsd_vals = compute_vsd(need, res.T_cam_obj, T_gt, cams, ds, db, conf["vsd_delta"], protocols.BOP19_VSD_TAUS,
+            vsd_vals = compute_vsd(need, T_est, T_gt, cams, ds, db, conf["vsd_delta"], protocols.BOP19_VSD_TAUS,
                                    progress=progress)
             for k, tau in enumerate(protocols.BOP19_VSD_TAUS):
                 col = np.full(len(table), np.nan)
@@ -545,6 +564,9 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
         if not gt_cams:
             warn("no GT camera poses (cam_R_w2c/cam_t_w2c) in scene_camera.json: only the fraction of views placed")
         scores["cameras"] = protocols.camera_pose_errors(groups, gt_cams)
+    if oracle is not None:
+        scores["oracle"] = {"kind": oracle, "what": f"each estimate's {ORACLE_PART[oracle]} taken from the GT "
+                            "instance it is compared with: a diagnostic, not a BOP score"}
     scores["warnings"] = warnings
     scores["models_dir"] = str(models_path)
     scores["symmetry_steps"] = n_steps

@@ -61,6 +61,8 @@ def write_report(path: Path, scores: dict, curves: pd.DataFrame, gt_err: pd.Data
              f"MSSD {_fmt(scores.get('bop19_average_recall_mssd'))}, MSPD {_fmt(scores.get('bop19_average_recall_mspd'))})"
              f"    AUC ADD-S {_fmt(scores.get('auc_adds'))}   AUC ADD(-S) {_fmt(scores.get('auc_add_or_adds'))}"
              f"   ADD-S<0.1d {_fmt(scores.get('recall_adds_0.1d'))}    [%]")
+    if scores.get("oracle"):
+        title = f"ORACLE {scores['oracle']['kind']} (a diagnostic)   " + title
     fig.suptitle(title, fontsize=12, y=0.995)
 
     panels = [
