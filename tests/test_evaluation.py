@@ -760,7 +760,8 @@ def test_evaluate_oracle(dataset, evaluated, tmp_path):
     got = {}
     for kind in ("depth", "rotation", "translation"):
         r = CliRunner().invoke(cli, ["evaluate", "--dataset", str(dataset), "--predictions", str(dataset / "pred.csv"),
-                                     "--out", str(tmp_path / kind), "--no-vsd", "--oracle", kind])
+                                     "--out", str(tmp_path / kind), "--oracle", kind]
+                               + ([] if kind == "translation" else ["--no-vsd"]))
         assert r.exit_code == 0, r.output
         assert f"oracle {kind}" in r.output
         got[kind] = pd.read_csv(tmp_path / kind / "errors.csv")
@@ -773,6 +774,8 @@ def test_evaluate_oracle(dataset, evaluated, tmp_path):
     assert pair(got["rotation"], 6, 1)["mssd"] < 1.0 < pair(errs, 6, 1)["mssd"]
     assert pair(got["translation"], 12, 2)["mssd"] == pytest.approx(0.0, abs=1e-9)
     assert pair(got["translation"], 12, 2)["re"] == pytest.approx(pair(errs, 12, 2)["re"])
+    vsd = [c for c in errs.columns if c.startswith("vsd_")]  # VSD renders the oracle's pose too
+    assert vsd and pair(errs, 12, 2)[vsd].max() > 0.5 and pair(got["translation"], 12, 2)[vsd].max() == 0.0
     assert json.loads((tmp_path / "translation" / "scores.json").read_text())["bop19_average_recall_mssd"] \
         > plain["bop19_average_recall_mssd"]
     # the same folder with another oracle is stale: refused without --overwrite
