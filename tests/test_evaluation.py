@@ -467,7 +467,7 @@ def test_scene_json_camera_errors(dataset, tmp_path):
                             metrics="auc", log=lambda *_: None, progress=False)
     c = s["cameras"]
     assert c["views"] == 4 and c["views_placed"] == 3 and c["fraction_views_placed"] == 0.75
-    assert c["pairs"] == 1
+    assert c["pairs"] == 1 and c["reference"] == "scene_camera"
     assert c["rot_err_deg_mean"] == pytest.approx(3, abs=1e-6)
     assert c["trans_err_mm_mean"] == pytest.approx(5, abs=1e-6)
     assert "bop19_average_recall" not in s
@@ -785,3 +785,59 @@ def test_evaluate_oracle(dataset, evaluated, tmp_path):
     r = CliRunner().invoke(cli, ["evaluate", "--dataset", str(dataset), "--predictions", str(dataset / "pred.csv"),
                                  "--out", str(tmp_path / "x"), "--oracle", "scale"])
     assert r.exit_code == 2 and "scale" in r.output
+
+
+def test_cameras_from_gt_objects():
+    """Static scene: every image's camera relative to the first comes back exactly from the GT object
+    poses; an object with two instances is not used; one annotated in a symmetric pose (turned
+    180 degrees) in one image is left out; a scene whose images share no object gives no camera."""
+    rng = np.random.default_rng(3)
+    world_obj = {o: make_pose(rot(rng.normal(size=3), 40 * o), rng.normal(0, 100, 3)) for o in (1, 2, 3, 4, 5)}
+    cams = {im: make_pose(rot(rng.normal(size=3), 20), rng.normal(0, 50, 3) + (0, 0, 900)) for im in (4, 7, 9)}
+    rows, T = [], []
+    for im, T_cw in cams.items():
+        for o in (1, 2, 3, 4, 4, 5):
+            Tco = T_cw @ world_obj[o]
+            if o == 5 and im == 9:  # annotated turned about its z axis: another camera implied
+                Tco = Tco @ make_pose(rot([0, 0, 1], 180), (0, 0, 0))
+            rows.append((1, im, o))
+            T.append(Tco)
+    rows.append((2, 0, 1)), T.append(np.eye(4))
+    rows.append((2, 1, 2)), T.append(np.eye(4))
+    gt = pd.DataFrame(rows, columns=["scene_id", "im_id", "obj_id"])
+    got, spread = protocols.cameras_from_gt_objects(gt, np.stack(T))
+    assert set(got) == {(1, 4), (1, 7), (1, 9), (2, 0)}  # (2, 1) shares nothing with (2, 0)
+    for im in (4, 7, 9):  # world = the first image's camera
+        np.testing.assert_allclose(got[(1, im)], cams[im] @ np.linalg.inv(cams[4]), atol=1e-9)
+    assert set(spread) == {(1, 7), (1, 9)} and max(spread.values()) < 1e-6
+    # without the outlier test the turned object would have moved camera 9
+    got_all, _ = protocols.cameras_from_gt_objects(gt, np.stack(T), outlier_mm=1e9)
+    assert np.abs(got_all[(1, 9)][:3, 3] - got[(1, 9)][:3, 3]).max() > 1.0
+
+
+def test_scene_json_camera_errors_without_gt_cameras(dataset, tmp_path):
+    """A dataset without camera poses (LM-O): the camera errors are measured against the cameras the
+    GT object poses imply, and scores.json says so."""
+    import shutil
+
+    root = tmp_path / "nocams"
+    shutil.copytree(dataset, root)
+    ds = BopDataset(root, "test")
+    for s in (1, 3):
+        cams = {im: bop.SceneCamera(K=c.K, depth_scale=c.depth_scale) for im, c in ds.scene_camera(s).items()}
+        bop.write_scene_camera(root / "test" / f"{s:06d}" / "scene_camera.json", cams)
+    T_17_2 = _gt_pose(3, 17, 2) @ np.linalg.inv(_gt_pose(3, 2, 1))  # object 3, the one single in both
+    off = make_pose(rot([0, 1, 0], 3), (0, 0, 5))  # 3 degrees and 5 mm off, in view 17
+    doc = {"groups": [{"scene_id": 3, "group_id": 0,
+                       "cameras": [{"im_id": 2, "T_world_cam": np.eye(4).tolist()},
+                                   {"im_id": 17, "T_world_cam": np.linalg.inv(off @ T_17_2).tolist()}],
+                       "objects": []}]}
+    sj = tmp_path / "scene.json"
+    sj.write_text(json.dumps(doc))
+    s = evaluate_stage.main("bop19", root, "test", root / "pred.csv", tmp_path / "ev", scene_json=sj,
+                            metrics="auc", log=lambda *_: None, progress=False)
+    c = s["cameras"]
+    assert c["reference"] == "gt_objects" and c["pairs"] == 1
+    assert c["rot_err_deg_mean"] == pytest.approx(3, abs=1e-6)
+    assert c["trans_err_mm_mean"] == pytest.approx(5, abs=1e-6)
+    assert any("GT object poses imply" in w for w in s["warnings"])

@@ -561,9 +561,23 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
             for im_id, c in ds.scene_camera(s).items():
                 if c.T_cam_world is not None:
                     gt_cams[(s, im_id)] = c.T_cam_world
-        if not gt_cams:
-            warn("no GT camera poses (cam_R_w2c/cam_t_w2c) in scene_camera.json: only the fraction of views placed")
+        reference, spread = "scene_camera", {}
+        if not gt_cams:  # LM-O: the cameras the GT objects imply (a static scene assumed)
+            gt_cams, spread = protocols.cameras_from_gt_objects(gt, T_gt)
+            reference = "gt_objects"
+            if gt_cams:
+                warn("no GT camera poses (cam_R_w2c/cam_t_w2c) in scene_camera.json: camera errors against the "
+                     "cameras the GT object poses imply (static scenes assumed; scores.json cameras.gt_objects_spread_mm "
+                     "says how far each view's objects agree)")
+            else:
+                warn("no GT camera poses (cam_R_w2c/cam_t_w2c) in scene_camera.json and no object seen in two views: "
+                     "only the fraction of views placed")
         scores["cameras"] = protocols.camera_pose_errors(groups, gt_cams)
+        scores["cameras"]["reference"] = reference
+        if spread:
+            v = np.array(list(spread.values()))
+            scores["cameras"]["gt_objects_spread_mm"] = {"median": float(np.median(v)), "max": float(v.max()),
+                                                         "views": int(len(v))}
     if oracle is not None:
         scores["oracle"] = {"kind": oracle, "what": f"each estimate's {ORACLE_PART[oracle]} taken from the GT "
                             "instance it is compared with: a diagnostic, not a BOP score"}

@@ -415,6 +415,54 @@ def camera_pose_errors(groups: list[dict], gt_T_cam_world: dict[tuple[int, int],
     }
 
 
+def cameras_from_gt_objects(gt: pd.DataFrame, T_gt: np.ndarray, outlier_mm: float = 30.0) -> tuple[dict, dict]:
+    """Camera poses implied by the GT object poses, for datasets without camera poses (LM-O):
+    per scene, the first image with GT is the world frame, and each image sharing objects with it
+    gets T_cam_world = the chordal mean over those objects of T_cam_obj T_ref_obj^-1 (rotation
+    projected onto SO(3), translation averaged). Only objects with one instance in both images
+    count, and of those the ones that agree (an object annotated in another of its symmetric
+    poses, or moved, is left out: farther than max(``outlier_mm``, 3 x the median distance) from
+    the median of the objects' implied camera centres). A static scene is assumed: the second dict
+    gives, per image but the reference, the largest distance (mm) of a kept object's implied camera centre from their
+    mean, which says how far that holds.
+
+    gt: rows (scene_id, im_id, obj_id) aligned with T_gt (n, 4, 4) T_cam_obj (mm). Returns
+    ({(scene_id, im_id): T_cam_world (4, 4)}, {(scene_id, im_id): spread_mm})."""
+    from ..geometry.poses import invert
+
+    cams, spread = {}, {}
+    keys = gt[["scene_id", "im_id", "obj_id"]].to_numpy(dtype=np.int64)
+    for s in np.unique(keys[:, 0]):
+        rows = np.flatnonzero(keys[:, 0] == s)
+        ims = np.unique(keys[rows, 1])
+        single = {}
+        for im in ims:  # objects with one instance in the image
+            r = rows[keys[rows, 1] == im]
+            o, c = np.unique(keys[r, 2], return_counts=True)
+            single[int(im)] = {int(x): int(r[keys[r, 2] == x][0]) for x in o[c == 1]}
+        ref = int(ims[0])
+        for im in ims:
+            shared = sorted(set(single[int(im)]) & set(single[ref]))
+            if not shared:
+                continue
+            M = np.stack([T_gt[single[int(im)][o]] @ invert(T_gt[single[ref][o]]) for o in shared])
+            # each object's camera centre in the reference frame; an object whose GT was annotated
+            # in another of its symmetric poses, or that moved, lands far from the others: objects
+            # farther than max(outlier_mm, 3 x the median distance) from the median centre are left out
+            centres = np.einsum("nji,nj->ni", M[:, :3, :3], -M[:, :3, 3])
+            d = np.linalg.norm(centres - np.median(centres, 0), axis=1)
+            keep = d <= max(outlier_mm, 3.0 * float(np.median(d)))
+            M, centres = M[keep], centres[keep]
+            U, _, Vt = np.linalg.svd(M[:, :3, :3].sum(0))
+            T = np.eye(4)
+            T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+            T[:3, 3] = M[:, :3, 3].mean(0)
+            cams[(int(s), int(im))] = T
+            if int(im) != ref:
+                spread[(int(s), int(im))] = float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+    return cams, spread
+
+
 # --------------------------------------------------------------------------------------------
 # CosyPose T-LESS ViVo (multi-instance) evaluation
 # --------------------------------------------------------------------------------------------
