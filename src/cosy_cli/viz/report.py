@@ -146,6 +146,9 @@ def _cameras_table(cams: dict) -> str:
              ("trans_err_mm_mean", "relative camera translation error, mean (mm)", 1)]
     rows = [f"<tr><td>{label}</td><td class=\"num\">{_fmt(cams.get(k), d)}</td></tr>"
             for k, label, d in items if k in cams]
+    if cams.get("reference") == "gt_objects" and rows:
+        rows.append("<tr><td>errors against</td><td>the cameras the GT object poses imply (no camera poses in the "
+                    "dataset)</td></tr>")
     if not rows:
         return ""
     return "<table>\n<tr><th>cameras (multi-view)</th><th>value</th></tr>\n" + "\n".join(rows) + "\n</table>"
