@@ -448,6 +448,21 @@ def test_auc_protocol(dataset, evaluated):
     assert set(curves.metric) >= {"adds_top1", "bop19_mssd", "bop19_mspd", "bop19_vsd"}
 
 
+def _camera_group(scene_id: int, group_id: int, cameras: dict) -> dict:
+    """A scene.json group without objects: im_id -> T_world_cam (None: not placed)."""
+    return {"scene_id": scene_id, "group_id": group_id, "objects": [],
+            "cameras": [{"im_id": im, "T_world_cam": None if T is None else np.asarray(T).tolist()}
+                        for im, T in cameras.items()]}
+
+
+def _evaluate_scene_json(root: Path, tmp_path: Path, doc: dict) -> tuple[Path, dict]:
+    """``doc`` written as scene.json, and the scores of evaluating root's pred.csv with it."""
+    sj = tmp_path / "scene.json"
+    sj.write_text(json.dumps(doc))
+    return sj, evaluate_stage.main("bop19", root, "test", root / "pred.csv", tmp_path / "ev", scene_json=sj,
+                                   metrics="auc", log=lambda *_: None, progress=False)
+
+
 def test_scene_json_camera_errors(dataset, tmp_path):
     ds = BopDataset(dataset, "test")
     cam = ds.scene_camera(3)
@@ -455,16 +470,9 @@ def test_scene_json_camera_errors(dataset, tmp_path):
     T1 = np.linalg.inv(cam[17].T_cam_world)
     T1_bad = T1 @ make_pose(rot([0, 0, 1], 3), (0, 5, 0))  # 3 degrees and 5 mm off, relative to view 2
     world = make_pose(rot([1, 2, 0], 33), (100, -50, 20))  # the reconstruction's own world frame
-    doc = {"groups": [{"scene_id": 3, "group_id": 0,
-                       "cameras": [{"im_id": 2, "T_world_cam": (world @ T0).tolist()},
-                                   {"im_id": 17, "T_world_cam": (world @ T1_bad).tolist()}], "objects": []},
-                      {"scene_id": 1, "group_id": 1,
-                       "cameras": [{"im_id": 0, "T_world_cam": np.eye(4).tolist()}, {"im_id": 5, "T_world_cam": None}],
-                       "objects": []}]}
-    sj = tmp_path / "scene.json"
-    sj.write_text(json.dumps(doc))
-    s = evaluate_stage.main("bop19", dataset, "test", dataset / "pred.csv", tmp_path / "ev", scene_json=sj,
-                            metrics="auc", log=lambda *_: None, progress=False)
+    doc = {"groups": [_camera_group(3, 0, {2: world @ T0, 17: world @ T1_bad}),
+                      _camera_group(1, 1, {0: np.eye(4), 5: None})]}
+    sj, s = _evaluate_scene_json(dataset, tmp_path, doc)
     c = s["cameras"]
     assert c["views"] == 4 and c["views_placed"] == 3 and c["fraction_views_placed"] == 0.75
     assert c["pairs"] == 1 and c["reference"] == "scene_camera"
@@ -828,14 +836,8 @@ def test_scene_json_camera_errors_without_gt_cameras(dataset, tmp_path):
         bop.write_scene_camera(root / "test" / f"{s:06d}" / "scene_camera.json", cams)
     T_17_2 = _gt_pose(3, 17, 2) @ np.linalg.inv(_gt_pose(3, 2, 1))  # object 3, the one single in both
     off = make_pose(rot([0, 1, 0], 3), (0, 0, 5))  # 3 degrees and 5 mm off, in view 17
-    doc = {"groups": [{"scene_id": 3, "group_id": 0,
-                       "cameras": [{"im_id": 2, "T_world_cam": np.eye(4).tolist()},
-                                   {"im_id": 17, "T_world_cam": np.linalg.inv(off @ T_17_2).tolist()}],
-                       "objects": []}]}
-    sj = tmp_path / "scene.json"
-    sj.write_text(json.dumps(doc))
-    s = evaluate_stage.main("bop19", root, "test", root / "pred.csv", tmp_path / "ev", scene_json=sj,
-                            metrics="auc", log=lambda *_: None, progress=False)
+    _, s = _evaluate_scene_json(root, tmp_path, {"groups": [_camera_group(3, 0, {2: np.eye(4),
+                                                                            17: np.linalg.inv(off @ T_17_2)})]})
     c = s["cameras"]
     assert c["reference"] == "gt_objects" and c["pairs"] == 1
     assert c["rot_err_deg_mean"] == pytest.approx(3, abs=1e-6)
