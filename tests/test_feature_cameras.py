@@ -270,18 +270,14 @@ def test_camera_without_objects_needs_more_inliers_and_takes_the_scale_from_the_
     assert ft.camera_without_objects(np.eye(4), ft.PairPose(pair_T, 100, 300), conf, X[:0], X_cam[:0]) is None
 
 
-@needs(LMO)
-def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_candidates_fixed(tmp_path):
+def _second_view_turned(tmp_path):
     """LM-O scene 29 (two views): right candidates (the GT) in the first view, every object turned
-    by 90 deg in the second. Matching with the rotation test links nothing, so the objects place no
-    camera; the images place the second view, and the leftover check gives its candidates the first
-    view's poses."""
-    from cosy_cli.evaluation.pose_error import re as rot_err
+    by 90 deg in the second, matched so that nothing links the views (cosy match's folder
+    tmp_path / "m"). Returns (dataset, scene, GT, first view, second view)."""
     from cosy_cli.geometry.rotations import rotation_about_axis
     from cosy_cli.io import bop
     from cosy_cli.io.dataset import BopDataset
-    from cosy_cli.geometry.poses import invert
-    from cosy_cli.multiview import match_stage, refine_stage
+    from cosy_cli.multiview import match_stage
     from realdata import orthonormal
 
     ds = BopDataset(LMO, "test")
@@ -295,11 +291,38 @@ def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_c
     res = bop.PoseResults.from_arrays([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows],
                                       [r[3] for r in rows], np.stack([r[4] for r in rows]), [-1.0] * len(rows))
     (tmp_path / "c.csv").write_text(bop.format_results(res))
-    quiet = lambda *x, **k: None  # noqa: E731
     # every association of the two views has one rotation wrong: the rotation test refuses them (by
     # default three of them, at 12, 30 and 88 mm under a threshold of 97 mm, link the views)
     match_stage.main(match_stage.resolve_conf("paper", max_rotation_deg=90.0), LMO, "test", tmp_path / "c.csv",
-                     tmp_path / "m", log=quiet, progress=False)
+                     tmp_path / "m", log=lambda *x, **k: None, progress=False)
+    return ds, s, gt, a, b
+
+
+def _replaced_rotation_errors(pred_csv, gt, b, obj_ids) -> list:
+    """Rotation errors (deg) in view b of the predictions of ``obj_ids`` against the GT."""
+    from cosy_cli.io import bop
+    from realdata import orthonormal
+
+    pred = bop.read_results(pred_csv, check_rotations=False)
+    t = pred.table
+    out = []
+    for o in obj_ids:
+        q = np.flatnonzero((t["im_id"].to_numpy() == b) & (t["obj_id"].to_numpy() == o))
+        (g_b,) = [y for y in gt[b] if y.obj_id == o]
+        out.append(float(np.ravel(angle_deg(pred.T_cam_obj[q[0]][:3, :3], orthonormal(g_b.T_cam_obj)[:3, :3]))[0]))
+    return out
+
+
+@needs(LMO)
+def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_candidates_fixed(tmp_path):
+    """LM-O scene 29, the second view's candidates turned (:func:`_second_view_turned`): the
+    objects place no camera; the images place the second view, and the leftover check gives its
+    candidates the first view's poses."""
+    from cosy_cli.geometry.poses import invert
+    from cosy_cli.multiview import refine_stage
+
+    ds, s, gt, a, b = _second_view_turned(tmp_path)
+    quiet = lambda *x, **k: None  # noqa: E731
     summary = refine_stage.main(None, LMO, "test", tmp_path / "m", tmp_path / "r", log=quiet, progress=False)
     doc = json.loads((tmp_path / "r" / "scene.json").read_text())
     (g,) = [x for x in doc["groups"] if x["scene_id"] == s]
@@ -312,13 +335,32 @@ def test_a_view_no_object_placed_gets_its_camera_from_the_images_and_its_wrong_c
     assert angle_deg(T_f[:3, :3], (invert(T_gt[a]) @ T_gt[b])[:3, :3]) < 3.0
     reps = g["leftovers"]["replaced"]
     assert {x["im_id"] for x in reps} == {b} and len(reps) > len(gt[b]) // 2  # 5 of the 7 here
-    pred = bop.read_results(tmp_path / "r" / "predictions.csv", check_rotations=False)
-    t = pred.table
-    for x in reps:
-        q = np.flatnonzero((t["im_id"].to_numpy() == b) & (t["obj_id"].to_numpy() == x["obj_id"]))
-        (g_b,) = [y for y in gt[b] if y.obj_id == x["obj_id"]]
-        err = float(np.ravel(rot_err(pred.T_cam_obj[q[0]][:3, :3], orthonormal(g_b.T_cam_obj)[:3, :3]))[0])
-        assert err < 10.0, (x, err)
+    errs = _replaced_rotation_errors(tmp_path / "r" / "predictions.csv", gt, b, [x["obj_id"] for x in reps])
+    assert max(errs) < 10.0, errs
+
+
+@needs(LMO)
+def test_scene_feature_cameras_place_a_view_no_object_placed(tmp_path):
+    """The same scene with ``feature_cameras`` "scene": the second view is placed by its image pair
+    alone (its camera within 3 deg of the GT's, held in the scene), no longer unplaced, and the
+    leftover check fixes its candidates as before."""
+    from cosy_cli.geometry.poses import invert
+    from cosy_cli.multiview import refine_stage
+
+    ds, s, gt, a, b = _second_view_turned(tmp_path)
+    summary = refine_stage.main(refine_stage.resolve_conf(None, feature_cameras="scene"), LMO, "test", tmp_path / "m",
+                                tmp_path / "r", log=lambda *x, **k: None, progress=False)
+    (g,) = [x for x in json.loads((tmp_path / "r" / "scene.json").read_text())["groups"] if x["scene_id"] == s]
+    assert g["unplaced_im_ids"] == [] and g["placed_by"][str(b)].startswith("image features alone")
+    info = g["stats"]["feature_cameras"]["views"][str(b)]
+    assert info["used"] and info["unplaced_by_the_objects"] and summary["feature_cameras_used"] >= 1
+    C = {c["im_id"]: np.array(c["T_world_cam"]) for c in g["cameras"]}
+    T_gt = gt_cameras(ds, s, [a, b])
+    assert angle_deg((invert(C[a]) @ C[b])[:3, :3], (invert(T_gt[a]) @ T_gt[b])[:3, :3]) < 3.0
+    reps = g["leftovers"]["replaced"]
+    assert {x["im_id"] for x in reps} == {b} and len(reps) > len(gt[b]) // 2
+    errs = _replaced_rotation_errors(tmp_path / "r" / "predictions.csv", gt, b, [x["obj_id"] for x in reps])
+    assert max(errs) < 10.0, errs
 
 
 

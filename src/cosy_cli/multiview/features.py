@@ -13,7 +13,8 @@ object-level estimate keeps it (:func:`feature_camera`).
 
 How ``cosy refine`` uses them (``feature_cameras``): "leftovers" (default) carries the leftover
 candidates of the image check across views with these cameras; "scene" also adjusts the objects
-again with them held. On the odd LM-O dev scenes (chosen there) the cameras' errors against the
+again with them held, and places the views no object placed from the images alone
+(:func:`camera_without_objects`), held as well. On the odd LM-O dev scenes (chosen there) the cameras' errors against the
 GT-derived ones went from 4.6 deg / 80 mm (objects alone) to 1.4 deg / 22 mm, and multi-view AR
 (MSSD, MSPD) with cosy's own candidates 0.429 -> 0.435 (leftovers; 0.444 with the final rules
 below) / 0.439 (scene); but "scene"

@@ -181,7 +181,10 @@ DEFAULT_CONF = {
     # (views the objects could not place: twice the inliers, the scale from same-label candidates).
     # "leftovers": those cameras carry the leftover candidates of the image check across views
     # (the refined scene keeps the object-level cameras); "scene": the objects are also adjusted
-    # again with those cameras held; "none": the objects alone (the paper). Needs the RGB images.
+    # again with those cameras held, and views no object placed are placed from their image pair
+    # with the gauge view alone (twice the inliers; held too), their candidates joining the scene
+    # through the rematch and the leftover check; "none": the objects alone (the paper). Needs the
+    # RGB images.
     "feature_cameras": "leftovers",
     "feature_min_inliers": 30,
 }
@@ -561,21 +564,34 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                  for p in g["view_pairs"] if p.get("linked")]
         placed, placed_by, _, gauge = placement.place_cameras(im_ids, links)
         unplaced = [v for v in im_ids if v not in placed]
-    views = list(placed)
-    vidx = {v: k for k, v in enumerate(views)}
     # feature cameras: for the scene ("scene"), or for the leftover check ("leftovers"; with depth
     # they also tell whether the views are distinct viewpoints: wide_views)
     wanted = not known_cameras and (conf["feature_cameras"] == "scene" or (
         conf["feature_cameras"] == "leftovers" and leftover_check_on(conf, checker)))
     from .image_check import images_available
 
-    use_features = wanted and len(views) > 1 and images_available(ds, s, views)
     pending: list = []  # feature cameras for the leftover check, computed only if it needs them
     rgb = functools.cache(lambda v: ds.read_rgb(s, v))  # the group's images, each read once
     features = functools.cache(lambda: _feature_cache(conf))  # SIFT per image, computed once (made when needed)
     tab = cands
     c_im = tab.column("im_id")
     c_score = tab.column("score")
+    stats: dict = {}
+    image_placed: set = set()  # views placed by their image pair with the gauge view alone ("scene")
+    if (wanted and conf["feature_cameras"] == "scene" and unplaced and gauge in placed
+            and images_available(ds, s, [gauge] + unplaced)):
+        # the views no object placed, from the images alone: their cameras are held in the
+        # adjustment, and their candidates join the scene through the rematch below
+        group_cands = sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]})
+        got = _image_only_cameras(rgb, features(), gauge, placed[gauge], unplaced, cams, cands, group_cands, stats)
+        for v, T in got.items():
+            placed[v] = T
+            placed_by[v] = f"image features alone ({stats['feature_cameras']['views'][str(v)]['inliers']} inliers)"
+            image_placed.add(v)
+        unplaced = [v for v in unplaced if v not in image_placed]
+    views = list(placed)
+    vidx = {v: k for k, v in enumerate(views)}
+    use_features = wanted and len(views) > 1 and images_available(ds, s, views)
 
     # candidates of objects, in placed views
     cand_ids, cand_obj, objs = [], [], []
@@ -595,10 +611,12 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     cand_obj = np.array(cand_obj, dtype=np.int64)
     Twc = np.stack([placed[v] for v in views])
     K = np.stack([cams[v].K for v in views])
-    stats: dict = {"iterations": 0, "converged": True, "initial_cost_px2": 0.0, "final_cost_px2": 0.0,
-                   "n_candidates": int(len(cand_ids)), "n_unused_candidates": len(unused)}
+    stats.update({"iterations": 0, "converged": True, "initial_cost_px2": 0.0, "final_cost_px2": 0.0,
+                  "n_candidates": int(len(cand_ids)), "n_unused_candidates": len(unused)})
+    held = sorted({0} | {vidx[v] for v in image_placed})  # the gauge, and the views only the images placed
     objects_out = []
     T_world_obj = np.zeros((0, 4, 4))
+    keep = np.zeros(0, dtype=bool)
     if len(objs):
         labels = sorted({int(o["obj_id"]) for o in objs})
         lab_index = {o: k for k, o in enumerate(labels)}
@@ -610,14 +628,14 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         S0 = np.stack([geo[obj_label[o]].symmetries[k] for o, k in zip(cand_obj, sym)])
         res = ba.bundle_adjust(Twc, Two, cv, cand_obj, T_cam_cand, K, obj_label, geo,
                                iterations=conf["iterations"], loss_threshold_px=conf["loss_threshold_px"],
-                               fixed_views="all" if known_cameras else 0, symmetries=S0)
+                               fixed_views="all" if known_cameras else (held if len(held) > 1 else 0), symmetries=S0)
         if use_features and gauge in vidx and len(views) > 1:
             # the cameras' rotations and baseline directions from the images (multiview.features),
             # the scale from the objects; then the objects again with those cameras held
             # ("scene"); for the leftover check alone ("leftovers") only when it needs them
             # (see _check_leftovers), the objects' cameras as they are now
             args = (res, rgb, list(views), dict(vidx), gauge, cams, cv, cand_obj, T_cam_cand, K, obj_label, geo,
-                    c_score[cand_ids], conf, stats, placed_by)
+                    c_score[cand_ids], conf, stats, placed_by, image_placed)
             run_features = functools.partial(lambda a: _feature_cameras(a[0], a[1], features(), *a[2:]), args)
             if conf["feature_cameras"] == "leftovers":
                 pending.append(run_features)
@@ -647,6 +665,8 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 n_unsupported += 1
         view_ok = np.zeros(len(views), dtype=bool)
         view_ok[cv[agree & keep[cand_obj]]] = True
+        for v in image_placed:  # placed by the images, not by the objects: no candidate needs to agree
+            view_ok[vidx[v]] = True
         T_cam_world = np.linalg.inv(Twc)  # (V, 4, 4): the views' extrinsics, for the view guard
         for k, o in enumerate(objs):
             if not keep[k]:
@@ -689,6 +709,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
             K = K[view_ok]
             views = [v for k, v in enumerate(views) if view_ok[k]]
         T_world_obj = T_world_obj[keep]
+    if len(objs) or image_placed:
         n_rematched = 0
         if conf["rematch"] and len(views) > 1:
             # candidates matching left apart, paired again in 2D with the adjusted cameras
@@ -798,19 +819,22 @@ def _feature_cache(conf: dict):
 
 
 def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams: dict, cv, cand_obj,
-                     T_cam_cand, K, obj_label, geo, cand_score, conf: dict, stats: dict, placed_by: dict):
+                     T_cam_cand, K, obj_label, geo, cand_score, conf: dict, stats: dict, placed_by: dict,
+                     image_placed=()):
     """Replace the object-level cameras of the views whose image pair with the gauge view is
     trusted (:func:`~cosy_cli.multiview.features.feature_camera`) and adjust the objects again
     with those cameras held fixed. Returns the new bundle result (``res`` when no view changed);
-    stats["feature_cameras"] records per view the inliers and whether it was used."""
+    stats["feature_cameras"] records per view the inliers and whether it was used. The views of
+    ``image_placed`` already have cameras from their images alone: held as they are."""
     from . import features as ft
 
     t0 = time.perf_counter()
     Twc = res.T_world_cam.copy()
     g = vidx[gauge]
-    fixed, info = [g], {}
+    fixed = [g] + [vidx[v] for v in image_placed]
+    info = dict(stats.get("feature_cameras", {}).get("views", {}))
     for v in views:
-        if v == gauge:
+        if v == gauge or v in image_placed:
             continue
         pair = ft.relative_pose(cache, gauge, rgb(gauge), cams[gauge].K, v, rgb(v), cams[v].K)
         # the scale from the objects seen in both views: their candidates' centres
@@ -825,7 +849,8 @@ def _feature_cameras(res, rgb, cache, views: list, vidx: dict, gauge: int, cams:
             fixed.append(vidx[v])
             if conf["feature_cameras"] == "scene":
                 placed_by[v] = f"{placed_by[v]} + image features ({pair.n_inliers} inliers)"
-    stats["feature_cameras"] = {"views": info, "time_s": round(time.perf_counter() - t0, 6)}
+    stats["feature_cameras"] = {"views": info, "time_s": round(stats.get("feature_cameras", {}).get("time_s", 0.0)
+                                                            + time.perf_counter() - t0, 6)}
     if conf["feature_cameras"] == "leftovers":
         stats["_feature_T_world_cam"] = {v: Twc[vidx[v]] for v in views if v == gauge or info[str(v)]["used"]}
         return res
@@ -845,12 +870,12 @@ def _pair_record(pair, used: bool) -> dict:
     return rec
 
 
-def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
-                              cands: bop.PoseResults, all_cands: list, stats: dict) -> None:
-    """Cameras of the group's views that the objects could not place, from their image pair with
-    the gauge view (:func:`~cosy_cli.multiview.features.camera_without_objects`; the scale from
-    the candidates of labels seen once in each of the two views), for the leftover check only:
-    added to stats["_feature_T_world_cam"], recorded in stats["feature_cameras"]["views"]."""
+def _image_only_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
+                        cands: bop.PoseResults, all_cands: list, stats: dict) -> dict:
+    """Cameras {im_id: T_world_cam} of the group's views that the objects could not place, from
+    their image pair with the gauge view (:func:`~cosy_cli.multiview.features.camera_without_objects`;
+    the scale from the candidates of labels seen once in each of the two views); every pair tried is
+    recorded in stats["feature_cameras"]["views"]."""
     from . import features as ft
 
     t0 = time.perf_counter()
@@ -864,7 +889,7 @@ def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray,
 
     ref = once(gauge)
     fc = stats.setdefault("feature_cameras", {"views": {}, "time_s": 0.0})
-    out = stats.setdefault("_feature_T_world_cam", {})
+    out = {}
     for v in never:
         here = once(v)
         both = sorted(set(ref) & set(here))
@@ -875,8 +900,18 @@ def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray,
         fc["views"][str(v)] = {**_pair_record(pair, T is not None), "unplaced_by_the_objects": True}
         if T is not None:
             out[v] = T
-            out.setdefault(gauge, T_world_gauge)
     fc["time_s"] = round(fc["time_s"] + time.perf_counter() - t0, 6)
+    return out
+
+
+def _unplaced_feature_cameras(rgb, cache, gauge: int, T_world_gauge: np.ndarray, never: list, cams: dict,
+                              cands: bop.PoseResults, all_cands: list, stats: dict) -> None:
+    """:func:`_image_only_cameras` for the leftover check only: added to stats["_feature_T_world_cam"]."""
+    got = _image_only_cameras(rgb, cache, gauge, T_world_gauge, never, cams, cands, all_cands, stats)
+    out = stats.setdefault("_feature_T_world_cam", {})
+    for v, T in got.items():
+        out[v] = T
+        out.setdefault(gauge, T_world_gauge)
 
 
 def group_predictions(r: dict, cands: bop.PoseResults, diameters: dict, conf: dict, score_min: float = -np.inf
