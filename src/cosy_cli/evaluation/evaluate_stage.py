@@ -55,7 +55,6 @@ from ..io import atomic, bop, cache, manifest
 from ..io.dataset import BopDataset
 from . import bop24 as bop24_protocol, oracle as oracle_poses, pose_error, protocols
 
-ORACLE_PART = {"depth": "distance along its ray", "rotation": "rotation", "translation": "translation"}
 OUTPUT_FILES = ("errors.csv", "scores.json", "curves.csv", "gt_errors.csv", "report.png")
 KNOWN_METRICS = ("bop19", "bop24", "auc", "vivo")
 DEFAULT_METRICS = ("bop19", "auc")
@@ -467,7 +466,7 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
     if oracle is not None:  # one pose per pair: the estimate with the oracle's part from that pair's GT
         T_est = oracle_poses.oracle_poses(oracle, T_est[est_gt["est_row"].to_numpy()], T_gt[est_gt["gt_row"].to_numpy()])
         est_gt["est_row"] = np.arange(len(est_gt))
-        log(f"evaluate: oracle {oracle}: each estimate's {ORACLE_PART[oracle]} from the GT it is compared with "
+        log(f"evaluate: oracle {oracle}: each estimate's {oracle_poses.PARTS[oracle]} from the GT it is compared with "
             "(a diagnostic, not a BOP score)")
     errs = compute_errors(est_gt, T_est, T_gt, K, db, n_steps, progress=progress)
     table = pd.concat([est_gt[["scene_id", "im_id", "obj_id", "est_index", "gt_index"]], errs], axis=1)
@@ -579,7 +578,7 @@ def main(conf, dataset: str | Path, split: str, predictions: str | Path, out: st
             scores["cameras"]["gt_objects_spread_mm"] = {"median": float(np.median(v)), "max": float(v.max()),
                                                          "views": int(len(v))}
     if oracle is not None:
-        scores["oracle"] = {"kind": oracle, "what": f"each estimate's {ORACLE_PART[oracle]} taken from the GT "
+        scores["oracle"] = {"kind": oracle, "what": f"each estimate's {oracle_poses.PARTS[oracle]} taken from the GT "
                             "instance it is compared with: a diagnostic, not a BOP score"}
     scores["warnings"] = warnings
     scores["models_dir"] = str(models_path)

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-ORACLES = ("depth", "rotation", "translation")
+PARTS = {"depth": "distance along its ray", "rotation": "rotation", "translation": "translation"}  # what each takes
+ORACLES = tuple(PARTS)
 
 
 def _pairs(T_est, T_gt) -> tuple[np.ndarray, np.ndarray]:
@@ -58,4 +59,4 @@ def oracle_poses(kind: str, T_est, T_gt) -> np.ndarray:
     return fn(T_est, T_gt)
 
 
-__all__ = ["ORACLES", "oracle_poses", "with_gt_depth", "with_gt_rotation", "with_gt_translation"]
+__all__ = ["ORACLES", "PARTS", "oracle_poses", "with_gt_depth", "with_gt_rotation", "with_gt_translation"]

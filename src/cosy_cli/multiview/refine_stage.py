@@ -577,13 +577,13 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
     c_im = tab.column("im_id")
     c_score = tab.column("score")
     stats: dict = {}
+    all_cands = sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]})
     image_placed: set = set()  # views placed by their image pair with the gauge view alone ("scene")
     if (wanted and conf["feature_cameras"] == "scene" and unplaced and gauge in placed
             and images_available(ds, s, [gauge] + unplaced)):
         # the views no object placed, from the images alone: their cameras are held in the
         # adjustment, and their candidates join the scene through the rematch below
-        group_cands = sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]})
-        got = _image_only_cameras(rgb, features(), gauge, placed[gauge], unplaced, cams, cands, group_cands, stats)
+        got = _image_only_cameras(rgb, features(), gauge, placed[gauge], unplaced, cams, cands, all_cands, stats)
         for v, T in got.items():
             placed[v] = T
             placed_by[v] = f"image features alone ({stats['feature_cameras']['views'][str(v)]['inliers']} inliers)"
@@ -628,7 +628,7 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
         S0 = np.stack([geo[obj_label[o]].symmetries[k] for o, k in zip(cand_obj, sym)])
         res = ba.bundle_adjust(Twc, Two, cv, cand_obj, T_cam_cand, K, obj_label, geo,
                                iterations=conf["iterations"], loss_threshold_px=conf["loss_threshold_px"],
-                               fixed_views="all" if known_cameras else (held if len(held) > 1 else 0), symmetries=S0)
+                               fixed_views="all" if known_cameras else held, symmetries=S0)
         if use_features and gauge in vidx and len(views) > 1:
             # the cameras' rotations and baseline directions from the images (multiview.features),
             # the scale from the objects; then the objects again with those cameras held
@@ -742,7 +742,6 @@ def refine_group(g: dict, cands: bop.PoseResults, ds: BopDataset, geometry: dict
                 if add:
                     T_world_obj = np.concatenate([T_world_obj, np.stack(add)])
         stats["n_rematched_objects"] = n_rematched
-    all_cands = sorted({int(c) for o in g["objects"] for c in o["cand_ids"]} | {int(c) for c in g["discarded"]})
     never = [v for v in im_ids if v not in placed]
     if (wanted and conf["feature_cameras"] == "leftovers" and gauge in placed and never
             and images_available(ds, s, [gauge] + never)):
