@@ -525,3 +525,55 @@ def test_mask_head_learns_the_visible_masks_of_rendered_objects(tmp_path):
     assert sorted(map(tuple, gt[["im_id", "obj_id", "x", "y"]].to_numpy().tolist())) == \
         sorted(map(tuple, plain[["im_id", "obj_id", "x", "y"]].to_numpy().tolist()))
     assert json.loads((tmp_path / "gt.meta.json").read_text())["classifier"]["masks_added"] == len(gt)
+
+
+def test_refine_top_moves_only_the_best_boxes_after_the_first_look(tmp_path):
+    """The cascade of ``classify_refine_masks(select=...)``: the boxes ``select`` names (from the
+    first look's probabilities) move and are looked at again exactly as without a cascade; the
+    others keep their box, first-look probabilities and mask. Through `cosy detect --refine-top`."""
+    import torch
+
+    from cosy_cli.detection.model import CenterNet, DetectorConfig
+    from cosy_cli.detection.train import export_onnx as export_detector
+
+    torch.manual_seed(0)
+    net = build_network(ClassifierConfig(obj_ids=IDS, crop=32, widths=(8, 8, 8, 8), box_head=True,
+                                         mask_head=True)).eval()
+    with torch.no_grad():  # a box head that moves boxes (the untrained one starts at zero offsets)
+        net.box.bias.copy_(torch.tensor([0.3, -0.2, 0.25, 0.1]))
+    path = tmp_path / "clf.onnx"
+    export_onnx(net, path)
+    clf = OnnxClassifier(path)
+    rgb = np.random.default_rng(0).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    boxes = np.array([[10, 10, 40, 30], [60, 20, 30, 50], [100, 60, 40, 40], [20, 70, 50, 30]], float)
+    p0, xyxy0, m0 = clf.classify_refine_masks(rgb, boxes, 0)
+    p_all, xyxy_all, m_all = clf.classify_refine_masks(rgb, boxes, 2)
+    assert not np.allclose(xyxy_all, xyxy0)
+    seen = []
+
+    def select(probs):
+        seen.append(probs)
+        return [2, 0]
+
+    p, xyxy, m = clf.classify_refine_masks(rgb, boxes, 2, select)
+    np.testing.assert_allclose(seen[0], p0, atol=1e-6)
+    for i, moved in ((0, True), (1, False), (2, True), (3, False)):
+        ref_p, ref_xyxy, ref_m = (p_all, xyxy_all, m_all) if moved else (p0, xyxy0, m0)
+        np.testing.assert_allclose(xyxy[i], ref_xyxy[i], atol=1e-6)
+        np.testing.assert_allclose(p[i], ref_p[i], atol=1e-5)
+        np.testing.assert_allclose(m[i], ref_m[i], atol=1e-5)
+    _, moved_xywh = clf.classify_refine(rgb, boxes, 2, select)
+    assert np.allclose(moved_xywh[1], boxes[1]) and not np.allclose(moved_xywh[0], boxes[0])
+    # the stage setting: recorded where it applies, refused when negative
+    det = tmp_path / "det.onnx"
+    export_detector(CenterNet(DetectorConfig(obj_ids=IDS, input_size=(64, 48))), det)
+    out = tmp_path / "d.json"
+    r = _run(["detect", "--scene", SCENE, "--model", det, "--classifier", path, "--min-score", 0,
+              "--max-per-image", 6, "--refine-boxes", 2, "--refine-top", 2, "--out", out, "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "d.meta.json").read_text())["conf"]["refine_top"] == 2
+    r = _run(["detect", "--scene", SCENE, "--model", det, "--classifier", path, "--min-score", 0,
+              "--out", tmp_path / "e.json", "--quiet"])
+    assert r.exit_code == 0 and "refine_top" not in json.loads((tmp_path / "e.meta.json").read_text())["conf"]
+    with pytest.raises(CosyError, match="refine_top"):
+        stage.resolve_conf("default", refine_top=-1)

@@ -191,3 +191,47 @@ def test_verification_settings_from_the_cli(tmp_path, templates_dir):
     assert c["verify_top"] == estimate_stage.VERIFY_TOP_DEPTH
     r = _run(["estimate", "--scene", str(SCENE), "--from-gt", "--verify-top", "many", "--out", str(out)])
     assert r.exit_code == 2 and "verify_top" in r.output and "many" in r.output
+
+
+def test_pose_score_ranks_the_box_whose_pose_fits_first(tmp_path, templates_dir, ds):
+    """--score pose: a candidate's score is the detection's x the verification score of its final
+    pose. Each object of two sample images gets its GT box and a decoy (the box of another object
+    in that image under this object's label, listed first), both with the detector's score 0.8:
+    the detector cannot tell them apart; the pose score ranks the right box first."""
+    gt = detections_from_gt(ds, [1], 0.1)
+    gt = gt[gt.im_id.isin([0, 1])].reset_index(drop=True)
+    dets, right = [], []
+    for im, g in gt.groupby("im_id"):
+        g = g.reset_index(drop=True)
+        for i, r in g.iterrows():
+            o = g.iloc[(i + 1) % len(g)]  # the next object's box, this object's label
+            for box, is_right in (((o.x, o.y, o.w, o.h), False), ((r.x, r.y, r.w, r.h), True)):
+                dets.append({"scene_id": 1, "image_id": int(im), "category_id": int(r.obj_id), "score": 0.8,
+                             "bbox": [float(v) for v in box], "time": -1.0})
+                right.append(is_right)
+    right = np.array(right)
+    det_path = tmp_path / "dets.json"
+    det_path.write_text(json.dumps(dets))
+    args = ["estimate", "--scene", str(SCENE), "--detections", str(det_path), "--coarse", "templates",
+            "--refiner", "none", "--depth-refine", "none", "--verify-top", "16", "--rgb-refine", "none",
+            "--top-k", "2", "--templates-dir", str(templates_dir)]
+    tables = {}
+    for score in ("detection", "pose"):
+        out = tmp_path / f"{score}.csv"
+        r = _run(args + ["--score", score, "--out", str(out)])
+        assert r.exit_code == 0, r.output
+        tables[score] = bop.read_results(out).table.reset_index(drop=True)
+    det_t, pose_t = tables["detection"], tables["pose"]
+    assert len(det_t) == len(pose_t) == len(dets)
+    assert (det_t["score"] == 0.8).all()
+    np.testing.assert_array_equal(pose_t["obj_id"], [d["category_id"] for d in dets])  # rows in the file's order
+    p = pose_t["score"].to_numpy()
+    assert ((p > 0) & (p <= 0.8)).all() and len(np.unique(p)) > len(p) // 2
+    # per (image, label): the box that ranks first by the pose score is the right one
+    top = pose_t.assign(right=right).sort_values("score", ascending=False, kind="stable").groupby(
+        ["im_id", "obj_id"]).head(1)
+    assert len(top) == len(gt) and top["right"].mean() >= 0.75, top
+    conf = json.loads((tmp_path / "pose.json").read_text())["conf"]
+    assert conf["score"] == "pose" and "score" not in json.loads((tmp_path / "detection.json").read_text())["conf"]
+    r = _run(args + ["--score", "best", "--out", str(tmp_path / "x.csv")])
+    assert r.exit_code == 2 and "best" in r.output

@@ -55,6 +55,9 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
               help="With --masks auto: a pixel is in the mask when the mask head's probability is at least this [0.5].")
 @click.option("--mask-boxes/--no-mask-boxes", default=None,
               help="With masks: each box becomes its mask's bounding box (tighter than the box head's) [no].")
+@click.option("--refine-top", type=click.IntRange(min=0), default=None,
+              help="Classifier with a box head: only the boxes ranked this high after its first look are moved "
+                   "(--refine-boxes passes, a look each); the others keep their box and first look [0: all].")
 @click.option("--tiles", type=click.Choice(["0", "2", "3", "4"]), default=None,
               help="Detector: also run it on an N x N grid of overlapping windows of the image, each seen N times "
                    "larger (small and far objects), boxes merged by NMS [0: the whole image only].")
@@ -62,7 +65,7 @@ from .common import dataset_options, resolve_scenes, scene_options, user_errors
 @user_errors
 def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images, from_gt, min_score, max_per_image,
            max_per_object, nms_iou, agnostic_nms_iou, min_visib, providers, classifier, label_ratio, refine_boxes,
-           masks, mask_threshold, mask_boxes, tiles, overwrite) -> None:
+           refine_top, masks, mask_threshold, mask_boxes, tiles, overwrite) -> None:
     """2D detections of the dataset's objects, one BOP detections file (CosyPose's first input).
 
     Sources: the shipped detector (default) or --model, --from-json (another tool's detections,
@@ -76,7 +79,7 @@ def detect(scene, dataset, split, scene_ids, out, model, from_json, coco_images,
                            max_per_object=max_per_object, nms_iou=nms_iou,
                            agnostic_nms_iou=agnostic_nms_iou, min_visib_fract=min_visib, providers=providers,
                            classifier=classifier, label_ratio=label_ratio, refine_boxes=refine_boxes,
-                           masks=masks, mask_threshold=mask_threshold, mask_boxes=mask_boxes,
+                           refine_top=refine_top, masks=masks, mask_threshold=mask_threshold, mask_boxes=mask_boxes,
                            tiles=None if tiles is None else int(tiles))
     stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids, model=model, from_json=from_json,
                coco_images=coco_images, from_gt=from_gt, log=console.echo, progress=True)

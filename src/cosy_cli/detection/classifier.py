@@ -486,29 +486,41 @@ class OnnxClassifier:
         crops = crop_boxes(np.asarray(rgb), xywh_to_xyxy_continuous(boxes_xywh), self.config.crop, self.config.margin)
         return self.classify_crops(crops)
 
-    def classify_refine(self, rgb: np.ndarray, boxes_xywh: np.ndarray, passes: int = 1
+    def classify_refine(self, rgb: np.ndarray, boxes_xywh: np.ndarray, passes: int = 1, select=None
                         ) -> tuple[np.ndarray, np.ndarray]:
         """(probabilities (N, C + 1), boxes (N, 4) [x, y, w, h]): ``passes`` times, crop the boxes,
         move them by the box head's offsets; the probabilities are those of the last crops (of the
         refined boxes when there is one more classification than moves: passes moves, then one
         look at the final boxes). Without a box head or with ``passes`` 0: :meth:`classify` and
         the boxes as given."""
-        probs, xyxy, _ = self.classify_refine_masks(rgb, boxes_xywh, passes)
+        probs, xyxy, _ = self.classify_refine_masks(rgb, boxes_xywh, passes, select)
         return probs, xyxy_continuous_to_xywh(xyxy)
 
-    def classify_refine_masks(self, rgb: np.ndarray, boxes_xywh: np.ndarray, passes: int = 1
-                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def classify_refine_masks(self, rgb: np.ndarray, boxes_xywh: np.ndarray, passes: int = 1,
+                              select=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """As :meth:`classify_refine`, but returns (probabilities, the final boxes (N, 4) as
         continuous [x1, y1, x2, y2] px, the mask head's (N, S / 4, S / 4) probabilities over the
         crops of those boxes or None without a mask head): :func:`paste_masks` puts them into
-        the image."""
+        the image. ``select``: None (every box is moved ``passes`` times), or a function of the
+        first look's probabilities (N, C + 1) returning the indices of the boxes that are moved;
+        the others keep their box and their first look (a cascade: the moves cost a look each)."""
         rgb = np.asarray(rgb)
         xyxy = xywh_to_xyxy_continuous(boxes_xywh)
         c = self.config
         probs, deltas, masks = self._run_all(crop_boxes(rgb, xyxy, c.crop, c.margin))
-        for _ in range(max(int(passes), 0) if c.box_head else 0):
-            xyxy = apply_box_deltas(xyxy, deltas, c.margin)
-            probs, deltas, masks = self._run_all(crop_boxes(rgb, xyxy, c.crop, c.margin))
+        n_pass = max(int(passes), 0) if c.box_head else 0
+        if not n_pass or not len(xyxy):
+            return probs, xyxy, masks
+        idx = np.arange(len(xyxy)) if select is None else np.unique(np.asarray(select(probs), np.int64))
+        sub_xyxy, sub_deltas = xyxy[idx], deltas[idx]
+        for _ in range(n_pass):
+            sub_xyxy = apply_box_deltas(sub_xyxy, sub_deltas, c.margin)
+            sub_probs, sub_deltas, sub_masks = self._run_all(crop_boxes(rgb, sub_xyxy, c.crop, c.margin))
+        probs, xyxy = probs.copy(), xyxy.copy()
+        probs[idx], xyxy[idx] = sub_probs, sub_xyxy
+        if masks is not None:
+            masks = masks.copy()
+            masks[idx] = sub_masks
         return probs, xyxy, masks
 
 
@@ -521,6 +533,20 @@ RULE_DEFAULTS = {
     "label_ratio": 0.2,   # emit a label when its probability is at least this x the best label's
     "background": 0.0,    # objectness x (1 - p_background) ** this (0: the classifier cannot veto a box)
 }
+
+
+def best_rescored(scores: np.ndarray, labels: np.ndarray, probs: np.ndarray, obj_ids: Sequence[int],
+                  label_mix: float = RULE_DEFAULTS["label_mix"], background: float = RULE_DEFAULTS["background"]
+                  ) -> np.ndarray:
+    """(N,) the score :func:`rescore` gives each box under its best label (label_ratio does not
+    matter: the best label is always emitted)."""
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    n = len(scores)
+    boxes = np.zeros((n, 4))
+    _, s, _, rows = rescore(boxes, scores, labels, probs, obj_ids, label_mix, 1.0, background)
+    best = np.full(n, -np.inf)
+    np.maximum.at(best, rows, s)
+    return best
 
 
 def rescore(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, probs: np.ndarray, obj_ids: Sequence[int],
@@ -570,5 +596,6 @@ def rescore(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, probs: np
 
 __all__ = ["ClassifierConfig", "build_network", "network_from_checkpoint", "export_onnx", "OnnxClassifier",
            "crop_boxes", "crop_sides", "box_deltas", "apply_box_deltas", "xywh_to_xyxy_continuous",
-           "xyxy_continuous_to_xywh", "rescore", "RULE_DEFAULTS", "METADATA_KEY", "BOX_DELTA_SCALE", "MASK_STRIDE",
+           "xyxy_continuous_to_xywh", "rescore", "best_rescored", "RULE_DEFAULTS",
+           "METADATA_KEY", "BOX_DELTA_SCALE", "MASK_STRIDE",
            "crop_masks", "paste_masks"]

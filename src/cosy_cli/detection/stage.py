@@ -68,6 +68,7 @@ CONFS = {
         "label_ratio": RULE_DEFAULTS["label_ratio"],  # classifier: emit labels with p >= this x the best p
         "background": RULE_DEFAULTS["background"],    # classifier: objectness x (1 - p_background) ** this
         "refine_boxes": 1,       # classifier with a box head: passes that move each box onto its object (0: off)
+        "refine_top": 0,         # ... only the boxes ranked this high after the first look (0: all; a cascade)
         "masks": "auto",         # classifier with a mask head: auto = each detection gets its segmentation | none
         "mask_threshold": 0.5,   # a pixel belongs to the mask when the mask head's probability is at least this
         "mask_boxes": False,     # with masks: each box becomes its mask's bounding box (tighter than the box head's)
@@ -88,6 +89,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["label_mix"], c["label_ratio"] = float(c["label_mix"]), float(c["label_ratio"])
         c["background"] = float(c["background"])
         c["refine_boxes"] = int(c["refine_boxes"])
+        c["refine_top"] = int(c["refine_top"])
         c["tiles"] = int(c["tiles"])
         c["masks"] = "none" if c["masks"] in (None, False) else str(c["masks"]).lower()
         c["mask_threshold"] = float(c["mask_threshold"])
@@ -103,10 +105,10 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError(f"detect settings: masks must be auto or none and mask_threshold in (0, 1), got "
                         f"{c['masks']!r}, {c['mask_threshold']}")
     if not (0 <= c["label_mix"] <= 1 and 0 < c["label_ratio"] <= 1 and c["background"] >= 0
-            and 0 <= c["refine_boxes"] <= 5 and c["tiles"] in (0, 2, 3, 4)):
+            and 0 <= c["refine_boxes"] <= 5 and c["tiles"] in (0, 2, 3, 4) and c["refine_top"] >= 0):
         raise CosyError("detect settings out of range (label_mix in [0, 1], label_ratio in (0, 1], background >= 0, "
-                        f"refine_boxes 0-5, tiles 0, 2, 3 or 4): {c['label_mix']}, {c['label_ratio']}, "
-                        f"{c['background']}, {c['refine_boxes']}, {c['tiles']}")
+                        f"refine_boxes 0-5, refine_top >= 0, tiles 0, 2, 3 or 4): {c['label_mix']}, "
+                        f"{c['label_ratio']}, {c['background']}, {c['refine_boxes']}, {c['refine_top']}, {c['tiles']}")
     return c
 
 
@@ -200,15 +202,20 @@ def run_detector(detector, ds: BopDataset, scene_ids: list[int], conf: dict, *, 
         mask_info = None
         if classifier is not None:
             from .boxes import nms_per_class
-            from .classifier import rescore, xyxy_continuous_to_xywh
+            from .classifier import best_rescored, rescore, xyxy_continuous_to_xywh
 
             t1 = time.perf_counter()
             passes = conf["refine_boxes"] if getattr(classifier, "has_box_head", False) else 0
+            select = None
+            if passes and 0 < conf.get("refine_top", 0) < len(boxes):  # only the best boxes after the first look move
+                def select(probs, s=scores, lab=labels, top=conf["refine_top"]):
+                    best = best_rescored(s, lab, probs, classifier.obj_ids, conf["label_mix"], conf["background"])
+                    return np.argsort(-best, kind="stable")[:top]
             if with_masks:
-                probs, crop_xyxy, mask_probs = classifier.classify_refine_masks(rgb, boxes, passes)
+                probs, crop_xyxy, mask_probs = classifier.classify_refine_masks(rgb, boxes, passes, select)
                 boxes = xyxy_to_xywh(clip_xyxy(xyxy_continuous_to_xywh(crop_xyxy), rgb.shape[1], rgb.shape[0]))
             elif passes:
-                probs, boxes = classifier.classify_refine(rgb, boxes, passes)
+                probs, boxes = classifier.classify_refine(rgb, boxes, passes, select)
                 boxes = xyxy_to_xywh(clip_xyxy(boxes, rgb.shape[1], rgb.shape[0]))
             else:
                 probs = classifier.classify(rgb, boxes)
@@ -392,6 +399,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             conf.pop(k, None)
     if source != "model" or not conf["tiles"]:  # recorded only where it applies, as the masks' settings
         conf.pop("tiles", None)
+    if source != "model" or not conf["refine_top"]:
+        conf.pop("refine_top", None)
     if reuse_existing_file(out, doc_path, "detect", overwrite, conf, inputs, log=log):
         return None
 

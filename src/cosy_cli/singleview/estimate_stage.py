@@ -93,20 +93,23 @@ CONFS = {
                                       # prediction); rank chosen on the odd LM-O scenes (as good, 3.5x faster)
         "scorer_keep": 16,            # scope rank: hypotheses per detection the scorer orders (16 chosen on the odd
                                       # LM-O scenes against 8: 0.401 -> 0.420)
+        "score": "detection",         # a candidate's score: detection (the detector's) | pose (the detector's x the
+                                      # verification score of the final pose: the learned scorer's probability with
+                                      # --scorer, else the training-free score in [0, 1]; needs verification)
     },
     # The paper's RGB-only chain: coarse network, 4 refiner iterations, no depth.
     "paper": {"coarse": "network", "refiner": "network", "depth_refine": "none", "refiner_iterations": 4, "top_k": 1,
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
               "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto",
               "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0, "scorer_scope": "rank",
-              "scorer_keep": 16},
+              "scorer_keep": 16, "score": "detection"},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
                       "masks": "auto", "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0,
-                      "scorer_scope": "rank", "scorer_keep": 16},
+                      "scorer_scope": "rank", "scorer_keep": 16, "score": "detection"},
 }
 
 
@@ -115,7 +118,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
     choices = {"coarse": ("network", "templates", "auto"), "refiner": ("network", "none", "auto"),
                "depth_refine": ("icp", "none", "auto"), "providers": ("cpu", "cuda"),
                "rgb_refine": ("search", "contour", "search+contour", "none", "auto"), "masks": ("auto", "none"),
-               "scorer_scope": ("all", "rank")}
+               "scorer_scope": ("all", "rank"), "score": ("detection", "pose")}
     for k, allowed in choices.items():
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
@@ -237,6 +240,7 @@ class ImageEstimate:
     alternatives: np.ndarray | None = None
     alt_score: np.ndarray | None = None
     best_score: np.ndarray | None = None  # (N,) the ranking score of the hypothesis that became T
+    pose_score: np.ndarray | None = None  # (N,) with conf score "pose": the verification score of T, in [0, 1]
 
 
 class Estimator:
@@ -429,7 +433,34 @@ class Estimator:
                 res.times["icp"] += time.perf_counter() - t0
                 res.steps["refiner_icp"] = T.copy()
         res.T = T
+        if c.get("score", "detection") == "pose":
+            t0 = time.perf_counter()
+            res.pose_score = self.pose_score(rgb, K, boxes, obj_ids, T, masks, ranked if verified else None)
+            res.times["pose_score"] = time.perf_counter() - t0
         return res
+
+    def pose_score(self, rgb, K, boxes, obj_ids, T, masks=None, ranked=None) -> np.ndarray:
+        """(N,) the verification score in [0, 1] of the final poses T (N, 4, 4): the learned
+        scorer's probability that a pose is within the BOP tolerances when there is one, else the
+        training-free image score; one render of the N poses. ``ranked``: the verification's
+        observations (and template scores) of these detections, reused when given."""
+        from .training_free.verify import observe
+
+        N = len(T)
+        if ranked is not None:
+            obs, prior = ranked.obs, ranked.prior[:, 0]
+        else:
+            masks = [None] * N if masks is None else list(masks)
+            obs = [observe(rgb, K, b, self.verifier.conf, m) for b, m in zip(np.asarray(boxes, float), masks)]
+            prior = None
+        prior = None if prior is None else np.nan_to_num(np.asarray(prior, np.float64), nan=0.0)
+        ok = np.all(np.isfinite(T.reshape(N, -1)), 1) & (T[:, 2, 3] > 0)
+        out = np.zeros(N)
+        if ok.any():
+            det = np.flatnonzero(ok)
+            out[det] = self.verifier.score(obs, det, np.asarray(obj_ids)[det], T[det],
+                                           None if prior is None else prior[det], learned=self.scorer is not None)
+        return np.clip(out, 0.0, 1.0)
 
 
 def decide(conf: dict, *, coarse_model: Path | None, refiner_model: Path | None, has_depth: bool) -> dict:
@@ -587,7 +618,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
     refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
-    for k in ("mask_weight", "mask_band", "scorer_scope", "scorer_keep"):  # recorded only when changed
+    for k in ("mask_weight", "mask_band", "scorer_scope", "scorer_keep", "score"):  # recorded only when changed
         if run_conf.get(k) == CONFS["default"][k]:
             run_conf.pop(k)
     n_hyp = int(run_conf.pop("hypotheses", 1))
@@ -676,8 +707,11 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             rows_T.append(r.T)
             if n_hyp > 1:
                 rows_alt.append(_alternatives(r, n_hyp - 1))
+            score = d["score"].to_numpy(np.float64)
+            if r.pose_score is not None:  # score "pose": the detection's x its pose's verification score
+                score = score * r.pose_score
             rows_meta.append(pd.DataFrame({"scene_id": sid, "im_id": im_id, "obj_id": d["obj_id"].to_numpy(),
-                                           "score": d["score"].to_numpy(), "time": dt,
+                                           "score": score, "time": dt,
                                            "det_index": d.index.to_numpy()}))
             timing.append({"scene_id": sid, "im_id": im_id, "detections": len(d), "time_s": dt,
                            **{f"{k}_s": v for k, v in r.times.items()}})
