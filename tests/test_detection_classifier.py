@@ -291,6 +291,44 @@ def test_train_resume_and_export_a_classifier(tmp_path):
     assert rows[1].endswith(",,") and rec["box_head"] is False and rec["mask_head"] is False
 
 
+def test_export_an_efficientnet_lite0_classifier_in_int8(tmp_path):
+    """`cosy export --precision int8` of an EfficientNet-Lite0 classifier run: its backbone's
+    convolutions become quantize/dequantize pairs (calibrated on crops rendered as in training),
+    the card says int8, the probabilities stay close to the float32 export's; a classifier on the
+    detector's backbone is refused with exit code 2; the float32 export is unchanged."""
+    import onnx
+
+    from cosy_cli.detection.classifier_train import calibration_feeds
+
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    run = tmp_path / "run"
+    r = _run(["train", "classifier", "--dataset", SAMPLES, "--out", run, "--batch-size", 8, "--iterations", 2,
+              "--backbone", "efficientnet-lite0"])
+    assert r.exit_code == 0, r.output
+    r = _run(["export", "--run", run, "--out", tmp_path / "fp32.onnx"])
+    assert r.exit_code == 0, r.output
+    r = _run(["export", "--run", run, "--out", tmp_path / "int8.onnx", "--precision", "int8"])
+    assert r.exit_code == 0, r.output
+    assert "convolutions of the EfficientNet-Lite0 backbone in int8" in r.output
+    assert "int8" in (tmp_path / "int8.md").read_text() and "int8" not in (tmp_path / "fp32.md").read_text()
+    ops = [n.op_type for n in onnx.load(str(tmp_path / "int8.onnx")).graph.node]
+    ops32 = {n.op_type for n in onnx.load(str(tmp_path / "fp32.onnx")).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= set(ops) and "QuantizeLinear" not in ops32
+    a, b = OnnxClassifier(tmp_path / "fp32.onnx"), OnnxClassifier(tmp_path / "int8.onnx")
+    assert b.config.arch == "lite0" and b.obj_ids == a.obj_ids == IDS
+    crops = calibration_feeds(json.loads((run / "config.json").read_text()), n=16, seed=5)
+    x = (np.concatenate([f["crops"] for f in crops]).transpose(0, 2, 3, 1) * 255).round().astype(np.uint8)
+    pa, pb = a.classify_crops(x), b.classify_crops(x)
+    assert not np.array_equal(pa, pb)
+    np.testing.assert_allclose(pb, pa, atol=0.15)
+    # the detector's backbone has nothing to quantize this way
+    plain = tmp_path / "plain"
+    r = _run(["train", "classifier", "--dataset", SAMPLES, "--out", plain, "--batch-size", 8, "--iterations", 1])
+    assert r.exit_code == 0, r.output
+    r = _run(["export", "--run", plain, "--out", tmp_path / "p.onnx", "--precision", "int8"])
+    assert r.exit_code == 2 and "EfficientNet-Lite0" in r.output and not (tmp_path / "p.onnx").exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # box refinement (box head)
 # ------------------------------------------------------------------------------------------------

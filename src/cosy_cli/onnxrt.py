@@ -94,3 +94,65 @@ def update_card(path: str | Path, key: str, **fields) -> dict:
     with atomic_path(path) as tmp:
         onnx.save(m, str(tmp))
     return card
+
+
+QUANTIZED_OPS = ("Conv", "Clip")
+
+
+def quantize_convs(path: str | Path, feeds, node_parts: Sequence[str], key: str) -> int:
+    """Rewrite the ONNX file at ``path`` with the convolutions (and their ReLU6, ``Clip``) whose
+    node names contain one of ``node_parts`` (torch's export names them after the module path,
+    e.g. "/blocks.3/dw/dw.1/Conv", under a wrapper's name when there is one) in int8: weights per output channel (int8),
+    activations uint8 with ranges from onnxruntime's min/max calibration over ``feeds`` (a list
+    of input dicts), as quantize/dequantize pairs that onnxruntime fuses into integer
+    convolutions; the rest stays float32. The metadata is kept, and the card under ``key`` gains
+    ``"precision": "int8"``. Written atomically; returns the number of convolutions quantized.
+    The same inputs give the same file (deterministic calibration)."""
+    import contextlib
+    import io
+    import tempfile
+
+    import onnx
+    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
+                                          quantize_static)
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    from .io.atomic import atomic_path
+
+    model = onnx.load(str(path))
+    meta = {p.key: p.value for p in model.metadata_props}
+    feeds = list(feeds)
+    if not feeds:
+        raise ValueError("quantize_convs: no calibration inputs")
+
+    class _Reader(CalibrationDataReader):
+        def __init__(self):
+            self.it = iter(feeds)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    with tempfile.TemporaryDirectory() as work, atomic_path(path) as tmp:
+        # onnxruntime's pre-processing (shape inference, its graph optimisations: BatchNorm folded
+        # into the convolutions) first: quantized without it, the model runs slower than in float32
+        pre = Path(work) / "pre.onnx"
+        quant_pre_process(model, str(pre))
+        # the convolutions and their ReLU6 (Clip): quantized after the Clip, the activations keep
+        # their [0, 6] range (a convolution's own output range is far wider)
+        nodes = [n.name for n in onnx.load(str(pre)).graph.node
+                 if n.op_type in QUANTIZED_OPS and any(part in n.name for part in node_parts)]
+        if not nodes:
+            raise ValueError(f"{path}: no convolution named ...{'..., ...'.join(node_parts)}... to quantize")
+        with contextlib.redirect_stdout(io.StringIO()):  # its calibration prints progress
+            quantize_static(str(pre), str(tmp), _Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
+                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                            op_types_to_quantize=list(QUANTIZED_OPS), nodes_to_quantize=nodes,
+                            calibrate_method=CalibrationMethod.MinMax)
+        q = onnx.load(str(tmp))  # the card and the rest of the metadata, as they were
+        del q.metadata_props[:]
+        for k, v in meta.items():
+            entry = q.metadata_props.add()
+            entry.key, entry.value = k, v
+        onnx.save(q, str(tmp))
+    update_card(path, key, precision="int8")
+    return sum(1 for n in nodes if n.endswith("Conv"))

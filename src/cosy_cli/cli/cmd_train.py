@@ -262,7 +262,8 @@ def train(kind, dataset, models_dir, camera, preset, shards, precision, split, o
               help="ONNX file to write; the model card goes next to it (same name, .md).")
 @click.option("--accuracy", default=None, help="Measured accuracy line for the model card [not measured].")
 @click.option("--precision", type=click.Choice(["int8", "fp32"]), default=None,
-              help="Scorer on EfficientNet-Lite0: its frozen trunk in int8 or float32 [the run's setting].")
+              help="Scorer on EfficientNet-Lite0: its frozen trunk in int8 or float32 [the run's setting]; box "
+                   "classifier on EfficientNet-Lite0: its backbone in int8 (calibrated on rendered crops) [fp32].")
 @user_errors
 def export(run, out, accuracy, precision) -> None:
     """Export a trained run's network (pose network or detector) to ONNX (dynamic batch) and
@@ -293,13 +294,13 @@ def export(run, out, accuracy, precision) -> None:
 
         scorer_train.export(run, out, log=console.echo, precision=precision)
         return
-    if precision is not None:
-        raise click.UsageError("--precision is for a scorer's run")
     if det_train.run_kind(run) == "classifier":
         from ..detection import classifier_train
 
-        classifier_train.export(run, out, accuracy=accuracy, log=console.echo)
+        classifier_train.export(run, out, accuracy=accuracy, log=console.echo, precision=precision)
         return
+    if precision is not None:
+        raise click.UsageError("--precision is for a scorer's or an EfficientNet-Lite0 box classifier's run")
     if det_train.run_kind(run) == "detector":
         det_train.export(run, out, accuracy=accuracy, log=console.echo)
         return

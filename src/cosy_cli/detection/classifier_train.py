@@ -583,13 +583,59 @@ def load_run(run: str | Path, use_ema: bool = True):
                          "cosy train classifier", "classifier checkpoint")
 
 
-def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print) -> Path:
+def calibration_feeds(ck_config: dict, n: int = 64, per_feed: int = 8, seed: int = 0) -> list[dict]:
+    """Inputs of an exported classifier (``{"crops": (per_feed, 3, S, S) float32 in [0, 1]}``) for
+    calibrating its int8 convolutions: ``n`` crops of scenes rendered as the run's training drew
+    them (its objects, camera, crop jitter and appearance; photographs where the run's folder of
+    them is still there), from ``seed``."""
+    from .train import load_dataset_objects
+
+    c = dict(ck_config)
+    src = c.get("models") or c.get("dataset")
+    if not src or not Path(src).exists():
+        raise CosyError("int8 calibration renders the run's objects, and its models folder is gone", path=src)
+    meshes, _, _ = load_dataset_objects(None if c.get("models") else src, c.get("models"))
+    K, size = np.asarray(c["camera_K"], np.float64), tuple(int(v) for v in c["image_size"])
+    if c.get("backgrounds") and not Path(c["backgrounds"]).is_dir():
+        c["backgrounds"] = None
+    sampler = CropSampler(meshes, K, size, c, sorted(meshes), np.random.SeedSequence([seed, 7]),
+                          appearance=appearance_kwargs(c, lambda *_: None))
+    try:
+        x = sampler.batch(n)[0]
+    finally:
+        sampler.close()
+    x = np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32) * np.float32(1 / 255.0)
+    return [{"crops": x[i:i + per_feed]} for i in range(0, n, per_feed)]
+
+
+def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print,
+           precision: str | None = None) -> Path:
     """Export a classifier run's EMA weights to ONNX ``out`` and write a short model card next to
-    it (the shipped card, assets/classifier.md, is written by hand with the measured figures)."""
-    from .classifier import BOX_DELTA_SCALE, export_onnx
+    it (the shipped card, assets/classifier.md, is written by hand with the measured figures).
+    ``precision`` "int8" (EfficientNet-Lite0 classifiers): its backbone's convolutions in int8,
+    calibrated on crops rendered as in training (:func:`calibration_feeds`; about 2x faster on a
+    CPU); None or "fp32": float32."""
+    from ..onnxrt import quantize_convs
+    from .classifier import BOX_DELTA_SCALE, METADATA_KEY, export_onnx
 
     net, ck = load_run(run)
-    export_onnx(net, out, {"training_steps": int(ck["step"]), "training_crops": int(ck["samples"])})
+    if precision not in (None, "fp32", "int8"):
+        raise CosyError(f"precision must be int8 or fp32, got {precision!r}")
+    if precision == "int8" and net.config.arch != "lite0":
+        raise CosyError(f"int8 is for a classifier on EfficientNet-Lite0 (this run's arch: {net.config.arch})",
+                        path=run)
+    meta = {"training_steps": int(ck["step"]), "training_crops": int(ck["samples"])}
+    if precision == "int8":  # the float32 export, quantized, then in place: out is never a half-done file
+        from ..io.atomic import atomic_path
+
+        feeds = calibration_feeds(ck["config"])
+        with atomic_path(out) as tmp:
+            export_onnx(net, tmp, meta)
+            # all the backbone's stages: the fixed first three alone gain nothing (measured: 1.0x)
+            n = quantize_convs(tmp, feeds, ("/stem/", "/blocks."), METADATA_KEY)
+        log(f"export: {n} convolutions of the EfficientNet-Lite0 backbone in int8 (calibrated on 64 rendered crops)")
+    else:
+        export_onnx(net, out, meta)
     c, cfg = ck["config"], net.config
     n = sum(p.numel() for p in net.parameters())
     return loop.write_model_card(out, [
@@ -617,8 +663,9 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         + appearance_card(c),
         f"- training: {ck['step']} steps, {ck['samples']} crops, batch {c['batch_size']}, Adam lr {c['lr']:g}, "
         f"EMA {c['ema']:g}, seed {c['seed']}, box jitter {c.get('jitter', 0.07):g} x the box size per edge",
-    ], ck, accuracy, log)
+    ] + (["- precision: the backbone's convolutions in int8 (per-channel weights, activations calibrated on 64 "
+          "rendered crops), the rest float32"] if precision == "int8" else []), ck, accuracy, log)
 
 
-__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "load_run", "export", "CropSampler", "lookalike_fits",
+__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "load_run", "export", "calibration_feeds", "CropSampler", "lookalike_fits",
            "distinguishing_points", "lookalike_probes", "soft_target_rows"]

@@ -177,30 +177,20 @@ def export_onnx(net: nn.Module, path, card: dict) -> None:
 
 
 TRUNK_PREFIXES = ("/stem", "/blocks")  # ONNX node names of Lite0ScorerNet's frozen trunk (torch's export)
-QUANTIZED_OPS = ("Conv", "Clip")
 
 
 def quantize_trunk(path, feeds) -> int:
     """Rewrite the lite0 scorer at ``path`` (an :func:`export_onnx` file) with its frozen trunk's
-    convolutions in int8: weights per output channel (int8), activations uint8 with ranges from
-    onnxruntime's min/max calibration over ``feeds`` (a list of input dicts, e.g. rendered
-    training hypotheses), as quantize/dequantize pairs that onnxruntime fuses into integer
-    convolutions. The head stays in float32. The card gains ``"precision": "int8"``. Written
+    convolutions in int8 (:func:`cosy_cli.onnxrt.quantize_convs`: weights per output channel,
+    activations calibrated over ``feeds``, a list of input dicts, e.g. rendered training
+    hypotheses). The head stays in float32. The card gains ``"precision": "int8"``. Written
     atomically; returns the number of convolutions quantized. The same inputs give the same file
     (deterministic calibration)."""
-    import contextlib
-    import io
     import json
-    import tempfile
-    from pathlib import Path
 
     import onnx
-    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
-                                          quantize_static)
-    from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    from ...io.atomic import atomic_path
-    from ...onnxrt import update_card
+    from ...onnxrt import quantize_convs
 
     model = onnx.load(str(path))
     meta = {p.key: p.value for p in model.metadata_props}
@@ -214,33 +204,4 @@ def quantize_trunk(path, feeds) -> int:
     feeds = list(feeds)
     if not feeds:
         raise ValueError("quantize_trunk: no calibration inputs")
-
-    class _Reader(CalibrationDataReader):
-        def __init__(self):
-            self.it = iter(feeds)
-
-        def get_next(self):
-            return next(self.it, None)
-
-    with tempfile.TemporaryDirectory() as work, atomic_path(path) as tmp:
-        # onnxruntime's pre-processing (shape inference, its graph optimisations: BatchNorm folded
-        # into the convolutions) first: quantized without it, the model runs slower than in float32
-        pre = Path(work) / "pre.onnx"
-        quant_pre_process(model, str(pre))
-        # the convolutions and their ReLU6 (Clip): quantized after the Clip, the activations keep
-        # their [0, 6] range (a convolution's own output range is far wider)
-        trunk = [n.name for n in onnx.load(str(pre)).graph.node
-                 if n.op_type in QUANTIZED_OPS and n.name.startswith(TRUNK_PREFIXES)]
-        with contextlib.redirect_stdout(io.StringIO()):  # its calibration prints progress
-            quantize_static(str(pre), str(tmp), _Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                            op_types_to_quantize=list(QUANTIZED_OPS), nodes_to_quantize=trunk,
-                            calibrate_method=CalibrationMethod.MinMax)
-        q = onnx.load(str(tmp))  # the card and the rest of the metadata, as they were
-        del q.metadata_props[:]
-        for k, v in meta.items():
-            entry = q.metadata_props.add()
-            entry.key, entry.value = k, v
-        onnx.save(q, str(tmp))
-    update_card(path, METADATA_KEY, precision="int8")
-    return sum(1 for n in trunk if n.endswith("Conv"))
+    return quantize_convs(path, feeds, TRUNK_PREFIXES, METADATA_KEY)
