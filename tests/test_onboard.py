@@ -62,6 +62,19 @@ def test_onboard_trains_both_side_by_side_exports_and_resumes(tmp_path):
         assert cfg["camera_distance"] == [400.0, 1500.0] and cfg["float_depth"] == [400.0, 1500.0], run
     assert "the camera 400-1500 mm from table scenes" in (out / "detector.md").read_text()
     assert "detector480" in json.loads((out / "onboard.json").read_text())["minutes"]
+    # both on EfficientNet-Lite0, the classifier exported in int8
+    r = _run(base + ["--detector-iterations", 1, "--classifier-iterations", 1, "--detector-backbone",
+                     "efficientnet-lite0", "--classifier-backbone", "efficientnet-lite0", "--classifier-precision",
+                     "int8", "--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((out / "detector" / "config.json").read_text())["backbone"] == "lite0"
+    assert OnnxDetector(out / "detector.onnx").config["backbone"] == "lite0"
+    assert "int8" in (out / "classifier.md").read_text() and "in int8" in r.output
+    from cosy_cli.detection import train as det_train
+
+    assert det_train.resolve_conf("real", backbone="lite0")["iterations"] == det_train.LITE0_REAL["iterations"]
+    assert det_train.resolve_conf("real", backbone="lite0", iterations=7)["iterations"] == 7
+    assert det_train.resolve_conf("real")["iterations"] == 2500
 
 
 def test_onboard_reports_a_failed_training_and_bad_inputs(tmp_path):
@@ -72,6 +85,8 @@ def test_onboard_reports_a_failed_training_and_bad_inputs(tmp_path):
     assert r.exit_code == 2 and "failed" in r.output and "Traceback" not in r.output, r.output
     r = _run(["onboard", "--models", tmp_path, "--out", tmp_path / "o2"])
     assert r.exit_code == 2 and "models_info.json" in r.output
+    r = _run(["onboard", "--models", SAMPLES / "models", "--out", tmp_path / "o4", "--classifier-precision", "int8"])
+    assert r.exit_code == 2 and "efficientnet-lite0" in r.output, r.output
     r = _run(["onboard", "--models", SAMPLES / "models", "--out", tmp_path / "o3", "--distance", "900,500"])
     assert r.exit_code == 2 and "NEAR <= FAR" in r.output, r.output
     r = _run(["train", "scorer", "--models", SAMPLES / "models", "--out", tmp_path / "s.onnx", "--distance", "300,900"])

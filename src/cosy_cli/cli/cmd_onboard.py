@@ -37,13 +37,19 @@ from .common import distance_range, user_errors
               help="The box classifier's backbone: the detector's [default], or EfficientNet-Lite0 from its ImageNet "
                    "weights (1500 steps; on real LM-O AP50 0.32 -> 0.41, but about 4 s per image in cosy detect "
                    "with --config onboarded's 100 proposals).")
+@click.option("--detector-backbone", type=click.Choice(["plain", "efficientnet-lite0"]), default=None,
+              help="The detector's backbone: plain [default], or EfficientNet-Lite0 from its ImageNet weights "
+                   "(1000 steps).")
+@click.option("--classifier-precision", type=click.Choice(["int8", "fp32"]), default=None,
+              help="An EfficientNet-Lite0 classifier's export: int8 (its backbone's convolutions, calibrated on "
+                   "rendered crops; about 2x faster) or float32 [fp32].")
 @click.option("--seed", type=int, default=None, help="Seed of both trainings [0].")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default=None, help="Where both train [cpu].")
 @click.option("--resume", is_flag=True, help="Continue the trainings of OUT where they stopped.")
 @click.option("--overwrite", is_flag=True, help="Delete OUT and start again.")
 @user_errors
 def onboard(models_dir, camera, backgrounds, out, long_, long_iterations, detector_iterations, classifier_iterations, distance,
-            classifier_backbone, seed, device, resume, overwrite) -> None:
+            classifier_backbone, detector_backbone, classifier_precision, seed, device, resume, overwrite) -> None:
     """Onboard your objects from their meshes alone: train the 2D detector and its box classifier
     (boxes moved onto the objects, masks) on domain-randomised renders, side by side, and export
     both for `cosy run --model OUT/detector.onnx --classifier OUT/classifier.onnx --config onboarded`.
@@ -58,7 +64,8 @@ def onboard(models_dir, camera, backgrounds, out, long_, long_iterations, detect
     c = stage.resolve_conf("default", detector_iterations=detector_iterations,
                            classifier_iterations=classifier_iterations, long=long_ or None,
                            long_iterations=long_iterations, seed=seed, device=device, distance=distance,
-                           classifier_backbone=classifier_backbone)
+                           classifier_backbone=classifier_backbone, detector_backbone=detector_backbone,
+                           classifier_precision=classifier_precision)
     stage.main(c, models_dir, out, camera=camera, backgrounds=backgrounds, overwrite=overwrite, resume=resume,
                log=console.echo, progress=True)
 

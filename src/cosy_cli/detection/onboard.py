@@ -39,6 +39,8 @@ CONFS = {
         "device": "cpu",
         "distance": None,               # [near, far] mm of the rendered scenes (None: the preset's 300-1100)
         "classifier_backbone": None,    # detector | efficientnet-lite0 (None: the preset's, the detector's backbone)
+        "detector_backbone": None,      # plain | efficientnet-lite0 (None: the preset's, plain)
+        "classifier_precision": None,   # int8 | fp32: an EfficientNet-Lite0 classifier's export (None: fp32)
     },
 }
 RECORD = "onboard.json"
@@ -54,6 +56,12 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         c["distance"] = None if c["distance"] is None else [float(v) for v in c["distance"]]
         if c["classifier_backbone"] not in (None, "detector", "efficientnet-lite0"):
             raise ValueError(f"classifier_backbone must be detector or efficientnet-lite0, got {c['classifier_backbone']!r}")
+        if c["detector_backbone"] not in (None, "plain", "efficientnet-lite0"):
+            raise ValueError(f"detector_backbone must be plain or efficientnet-lite0, got {c['detector_backbone']!r}")
+        if c["classifier_precision"] not in (None, "int8", "fp32"):
+            raise ValueError(f"classifier_precision must be int8 or fp32, got {c['classifier_precision']!r}")
+        if c["classifier_precision"] == "int8" and c["classifier_backbone"] != "efficientnet-lite0":
+            raise ValueError("classifier_precision int8 is for the efficientnet-lite0 classifier backbone")
     except (TypeError, ValueError) as e:
         raise CosyError(f"onboard settings: {e}") from None
     if any(c[k] is not None and c[k] < 1 for k in ("detector_iterations", "classifier_iterations")) \
@@ -78,8 +86,8 @@ def train_command(kind: str, models_dir: Path, camera: Path | None, run: Path, c
         cmd += ["--iterations", str(iterations)]
     if conf.get("distance"):
         cmd += ["--distance", ",".join(f"{v:g}" for v in conf["distance"])]
-    if kind == "classifier" and conf.get("classifier_backbone"):
-        cmd += ["--backbone", conf["classifier_backbone"]]
+    if conf.get(f"{kind}_backbone"):
+        cmd += ["--backbone", conf[f"{kind}_backbone"]]
     if resume and (run / "checkpoint.pt").is_file():
         cmd += ["--resume"]
     return cmd + list(extra or [])
@@ -176,7 +184,9 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, *, ca
 
     runs = {"detector": out / "detector", "classifier": out / "classifier"}
     clf_arch = {"efficientnet-lite0": "lite0"}.get(conf["classifier_backbone"])
-    totals = {"detector": conf["detector_iterations"] or int(det_train.CONFS["real"]["iterations"]),
+    det_arch = {"efficientnet-lite0": "lite0"}.get(conf["detector_backbone"])
+    totals = {"detector": conf["detector_iterations"]
+              or int(det_train.resolve_conf("real", backbone=det_arch)["iterations"]),
               "classifier": conf["classifier_iterations"]
               or int(classifier_train.resolve_conf("real", arch=clf_arch)["iterations"])}
     jobs = {name: (train_command(name, models_dir, camera, runs[name], conf, backgrounds=backgrounds,
@@ -204,7 +214,8 @@ def main(conf: str | dict | None, models_dir: str | Path, out: str | Path, *, ca
         record["minutes"]["detector480"] = round(took["detector480"] / 60, 2)
         det_run = run480
     det_train.export(det_run, out / "detector.onnx", log=log)
-    classifier_train.export(runs["classifier"], out / "classifier.onnx", log=log)
+    classifier_train.export(runs["classifier"], out / "classifier.onnx", log=log,
+                            precision=conf["classifier_precision"])
     record["minutes"]["total"] = round((time.perf_counter() - t0) / 60, 2)
     write_json(out / RECORD, json.loads(json.dumps(record)))
     log(f"onboard: {out / 'detector.onnx'} and {out / 'classifier.onnx'} in {record['minutes']['total']:.1f} min; "

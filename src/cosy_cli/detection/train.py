@@ -203,8 +203,15 @@ def photo_note(conf: dict, n: int, what: str) -> str:
             + ")")
 
 
+# the `real` preset's budget with the EfficientNet-Lite0 backbone, unless iterations are given (its one LM-O run:
+# 1000 steps, about 55 min on 2 cores beside the classifier's training; docs/results.md)
+LITE0_REAL = {"iterations": 1000}
+
+
 def resolve_conf(conf: dict | None = None, **overrides) -> dict:
     """Defaults, then ``conf``, then the overrides that are not None; checked."""
+    if conf == "real" and overrides.get("backbone") == "lite0":
+        overrides = dict(overrides, **{k: v for k, v in LITE0_REAL.items() if overrides.get(k) is None})
     c = merge_conf(CONFS, conf, overrides, default="default", what="detector training")
     if c["kind"] != "detector":
         raise CosyError(f"kind must be detector here, not {c['kind']!r}")
