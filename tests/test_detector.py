@@ -226,6 +226,41 @@ def test_cli_train_resume_export(tmp_path):
     assert boxes.shape[1] == 4 and len(boxes) == len(scores) == len(ids)
 
 
+def test_export_an_efficientnet_lite0_detector_in_int8(tmp_path):
+    """`cosy export --precision int8` of an EfficientNet-Lite0 detector run: quantize/dequantize
+    pairs in its backbone (calibrated on scenes rendered as in training), int8 on the card, outputs
+    close to the float32 export's; the plain backbone refused (exit 2, nothing written)."""
+    import onnx
+
+    from cosy_cli.detection.network import OnnxDetector
+    from cosy_cli.detection.train import calibration_images
+
+    out = tmp_path / "run"
+    args = ["train", "detector", "--dataset", str(DATA), "--out", str(out), "--input", "128x96", "--batch-size", "2",
+            "--workers", "0", "--warmup", "1", "--iterations", "2", "--backbone", "efficientnet-lite0", "--quiet"]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    for prec in ("fp32", "int8"):
+        r = CliRunner().invoke(cli, ["export", "--run", str(out), "--out", str(tmp_path / f"{prec}.onnx"),
+                                     "--precision", prec])
+        assert r.exit_code == 0, r.output
+    ops = {n.op_type for n in onnx.load(str(tmp_path / "int8.onnx")).graph.node}
+    ops32 = {n.op_type for n in onnx.load(str(tmp_path / "fp32.onnx")).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops and "QuantizeLinear" not in ops32
+    assert "int8" in (tmp_path / "int8.md").read_text() and "int8" not in (tmp_path / "fp32.md").read_text()
+    a, b = OnnxDetector(tmp_path / "fp32.onnx"), OnnxDetector(tmp_path / "int8.onnx")
+    x = calibration_images(json.loads((out / "config.json").read_text()), n=4, seed=3)[0]["image"]
+    (pa, la), (pb, lb) = a.raw(x), b.raw(x)
+    assert not np.array_equal(la, lb)
+    np.testing.assert_allclose(lb, la, rtol=0.25, atol=2.0)  # box edge distances, input px
+    plain = tmp_path / "plain"
+    r = CliRunner().invoke(cli, ["train", "detector", "--dataset", str(DATA), "--out", str(plain), "--input", "64x48",
+                                 "--batch-size", "2", "--workers", "0", "--iterations", "1", "--quiet"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(cli, ["export", "--run", str(plain), "--out", str(tmp_path / "p.onnx"), "--precision", "int8"])
+    assert r.exit_code == 2 and "EfficientNet-Lite0" in r.output and not (tmp_path / "p.onnx").exists()
+
+
 def test_cli_rejects_pose_options_for_the_detector(tmp_path):
     r = CliRunner().invoke(cli, ["train", "detector", "--dataset", str(DATA), "--out", str(tmp_path / "r"),
                                  "--crop", "64x48"])

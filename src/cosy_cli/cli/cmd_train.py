@@ -262,8 +262,9 @@ def train(kind, dataset, models_dir, camera, preset, shards, precision, split, o
               help="ONNX file to write; the model card goes next to it (same name, .md).")
 @click.option("--accuracy", default=None, help="Measured accuracy line for the model card [not measured].")
 @click.option("--precision", type=click.Choice(["int8", "fp32"]), default=None,
-              help="Scorer on EfficientNet-Lite0: its frozen trunk in int8 or float32 [the run's setting]; box "
-                   "classifier on EfficientNet-Lite0: its backbone in int8 (calibrated on rendered crops) [fp32].")
+              help="Scorer on EfficientNet-Lite0: its frozen trunk in int8 or float32 [the run's setting]; "
+                   "detector or box classifier on EfficientNet-Lite0: its backbone in int8 (calibrated on rendered "
+                   "images) [fp32].")
 @user_errors
 def export(run, out, accuracy, precision) -> None:
     """Export a trained run's network (pose network or detector) to ONNX (dynamic batch) and
@@ -299,11 +300,12 @@ def export(run, out, accuracy, precision) -> None:
 
         classifier_train.export(run, out, accuracy=accuracy, log=console.echo, precision=precision)
         return
-    if precision is not None:
-        raise click.UsageError("--precision is for a scorer's or an EfficientNet-Lite0 box classifier's run")
     if det_train.run_kind(run) == "detector":
-        det_train.export(run, out, accuracy=accuracy, log=console.echo)
+        det_train.export(run, out, accuracy=accuracy, log=console.echo, precision=precision)
         return
+    if precision is not None:
+        raise click.UsageError("--precision is for a scorer's or an EfficientNet-Lite0 detector's or box "
+                               "classifier's run")
     from ..training import train as train_mod
 
     train_mod.export(run, out, accuracy=accuracy, log=console.echo)

@@ -621,13 +621,57 @@ def _sampling_lines(c: dict) -> list[str]:
     return lines
 
 
-def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print) -> Path:
+def calibration_images(ck_config: dict, n: int = 16, per_feed: int = 4, seed: int = 0) -> list[dict]:
+    """Inputs of an exported detector (``{"image": (per_feed, 3, h, w) float32 in [0, 1]}``) for
+    calibrating its int8 convolutions: ``n`` scenes rendered as the run's training drew them (its
+    objects, camera and appearance; photographs where the run's folder of them is still there)."""
+    from .data import DetectionSampleGenerator
+
+    c = dict(ck_config)
+    src = c.get("models") or c.get("dataset")
+    if not src or not Path(src).exists():
+        raise CosyError("int8 calibration renders the run's objects, and its models folder is gone", path=src)
+    meshes, _, _ = load_dataset_objects(None if c.get("models") else src, c.get("models"))
+    K, size = np.asarray(c["camera_K"], np.float64), tuple(int(v) for v in c["image_size"])
+    if c.get("backgrounds") and not Path(c["backgrounds"]).is_dir():
+        c["backgrounds"] = None
+    mcfg = model_config(c, sorted(meshes))
+    gen = DetectionSampleGenerator(meshes, K, size, mcfg.input_size, seed=np.random.SeedSequence([seed, 7]),
+                                   obj_ids=sorted(meshes), max_objects=c["max_objects"], p_table=c["p_table"],
+                                   min_visib=c["min_visib"], **appearance_kwargs(c, lambda *_: None))
+    try:
+        images = np.ascontiguousarray(gen.batch(n)["images"].transpose(0, 3, 1, 2), np.float32) / np.float32(255.0)
+    finally:
+        gen.close()
+    return [{"image": images[i:i + per_feed]} for i in range(0, n, per_feed)]
+
+
+def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: Callable[[str], None] = print,
+           precision: str | None = None) -> Path:
     """Export a detector run (its EMA weights) to ONNX ``out`` and write the model card next to
-    it (same name, .md): objects, input size, architecture, training, loss, accuracy."""
+    it (same name, .md): objects, input size, architecture, training, loss, accuracy.
+    ``precision`` "int8" (EfficientNet-Lite0 detectors): its backbone's convolutions in int8,
+    calibrated on 16 scenes rendered as in training (:func:`calibration_images`); None or
+    "fp32": float32."""
+    from ..onnxrt import quantize_convs
+
     out = Path(out)
     net, ck = load_run(run)
     c = ck["config"]
-    export_onnx(net, out, {"training_steps": int(ck["step"]), "training_images": int(ck["samples"])})
+    if precision not in (None, "fp32", "int8"):
+        raise CosyError(f"precision must be int8 or fp32, got {precision!r}")
+    if precision == "int8" and net.config.backbone != "lite0":
+        raise CosyError(f"int8 is for a detector on EfficientNet-Lite0 (this run's backbone: {net.config.backbone})",
+                        path=run)
+    meta = {"training_steps": int(ck["step"]), "training_images": int(ck["samples"])}
+    if precision == "int8":  # the float32 export, quantized, then in place: out is never a half-done file
+        feeds = calibration_images(c)
+        with atomic_path(out) as tmp:
+            export_onnx(net, tmp, meta)
+            n = quantize_convs(tmp, feeds, ("/stem/", "/blocks."), METADATA_KEY)
+        log(f"export: {n} convolutions of the EfficientNet-Lite0 backbone in int8 (calibrated on 16 rendered scenes)")
+    else:
+        export_onnx(net, out, meta)
     cfg = net.config
     loss = ck.get("loss") or {}
     loss_txt = (f"{loss['total']:.3f} (heatmap focal {loss['heat']:.3f}, box 1 - GIoU {loss['box']:.3f})"
@@ -666,9 +710,10 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         *_sampling_lines(c),
         f"- final training loss (last logged mean): {loss_txt}",
-    ], ck, accuracy, log)
+    ] + (["- precision: the backbone's convolutions in int8 (per-channel weights, activations calibrated on 16 "
+          "rendered scenes), the rest float32"] if precision == "int8" else []), ck, accuracy, log)
     return out
 
 
-__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "export", "export_onnx", "load_run", "run_kind", "read_log",
+__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "export", "calibration_images", "export_onnx", "load_run", "run_kind", "read_log",
            "write_plot", "model_config", "load_dataset_objects"]
