@@ -233,5 +233,16 @@ def test_pose_score_ranks_the_box_whose_pose_fits_first(tmp_path, templates_dir,
     assert len(top) == len(gt) and top["right"].mean() >= 0.75, top
     conf = json.loads((tmp_path / "pose.json").read_text())["conf"]
     assert conf["score"] == "pose" and "score" not in json.loads((tmp_path / "detection.json").read_text())["conf"]
+    # --max-per-object 1: the best candidate of each object and image is kept, the others dropped
+    r = _run(args + ["--score", "pose", "--max-per-object", "1", "--out", str(tmp_path / "best.csv")])
+    assert r.exit_code == 0, r.output
+    assert "16 dropped" in r.output
+    best = bop.read_results(tmp_path / "best.csv").table.reset_index(drop=True)
+    assert len(best) == len(gt) and not best.duplicated(["im_id", "obj_id"]).any()
+    merged = best.merge(top[["im_id", "obj_id", "score"]], on=["im_id", "obj_id"], suffixes=("", "_top"))
+    np.testing.assert_allclose(merged["score"], merged["score_top"])
+    assert json.loads((tmp_path / "best.json").read_text())["conf"]["max_per_object"] == 1
+    timing = (tmp_path / "best.timing.csv").read_text().splitlines()
+    assert sum(int(row.split(",")[2]) for row in timing[1:]) == len(dets)  # every detection was estimated
     r = _run(args + ["--score", "best", "--out", str(tmp_path / "x.csv")])
     assert r.exit_code == 2 and "best" in r.output

@@ -93,6 +93,8 @@ CONFS = {
                                       # prediction); rank chosen on the odd LM-O scenes (as good, 3.5x faster)
         "scorer_keep": 16,            # scope rank: hypotheses per detection the scorer orders (16 chosen on the odd
                                       # LM-O scenes against 8: 0.401 -> 0.420)
+        "max_per_object": 0,          # keep the best this many candidates of each object per image, by score (0: all;
+                                      # with score pose: the boxes whose poses fit best)
         "score": "detection",         # a candidate's score: detection (the detector's) | pose (the detector's x the
                                       # verification score of the final pose: the learned scorer's probability with
                                       # --scorer, else the training-free score in [0, 1]; needs verification)
@@ -102,14 +104,14 @@ CONFS = {
               "icp_screen": 0, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1, "icp_iterations": 12,
               "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1, "masks": "auto",
               "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0, "scorer_scope": "rank",
-              "scorer_keep": 16, "score": "detection"},
+              "scorer_keep": 16, "score": "detection", "max_per_object": 0},
     # Training-free: templates, then ICP on depth.
     "templates-icp": {"coarse": "templates", "refiner": "none", "depth_refine": "icp", "refiner_iterations": 4,
                       "top_k": 12, "icp_screen": 32, "batch_size": 32, "providers": "cpu", "min_visib_fract": 0.1,
                       "icp_iterations": 12,
                       "verify_top": "auto", "rgb_refine": "auto", "image_weight": 1.0, "hypotheses": 1,
                       "masks": "auto", "box_scales": [1.0], "mask_weight": 2.0, "mask_band": 0,
-                      "scorer_scope": "rank", "scorer_keep": 16, "score": "detection"},
+                      "scorer_scope": "rank", "scorer_keep": 16, "score": "detection", "max_per_object": 0},
 }
 
 
@@ -123,7 +125,7 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         if c[k] not in allowed:
             raise CosyError(f"estimate setting {k}: expected one of {', '.join(allowed)}, got {c[k]!r}")
     for k in ("refiner_iterations", "top_k", "icp_screen", "batch_size", "icp_iterations", "hypotheses",
-              "mask_band", "scorer_keep"):
+              "mask_band", "scorer_keep", "max_per_object"):
         try:
             c[k] = int(c[k])
         except (TypeError, ValueError):
@@ -157,6 +159,8 @@ def resolve_conf(conf: str | dict | None = None, **overrides) -> dict:
         raise CosyError("estimate setting verify_top must be >= 0 (0: no verification by rendering)")
     if not 0 <= c["mask_band"] <= 32:
         raise CosyError("estimate setting mask_band must be 0 (off) to 32 cells")
+    if c["max_per_object"] < 0:
+        raise CosyError("estimate setting max_per_object must be >= 0 (0: every candidate)")
     if not 1 <= c["scorer_keep"] <= 256:
         raise CosyError("estimate setting scorer_keep must be 1 to 256 hypotheses per detection")
     if c["hypotheses"] < 1:
@@ -535,6 +539,18 @@ def model_sha1(path) -> str:
     return sha1(path)
 
 
+def best_per_object(obj_ids: np.ndarray, score: np.ndarray, n: int) -> np.ndarray:
+    """(N,) bool: the ``n`` best-scored rows of each obj_id (ties: the first rows)."""
+    obj_ids, score = np.asarray(obj_ids), np.asarray(score, np.float64)
+    order = np.lexsort((np.arange(len(score)), -score, obj_ids))  # by object, best score first, then row
+    sorted_ids = obj_ids[order]
+    start = np.r_[0, np.flatnonzero(sorted_ids[1:] != sorted_ids[:-1]) + 1] if len(order) else np.zeros(0, int)
+    rank = np.arange(len(order)) - np.repeat(start, np.diff(np.r_[start, len(order)]))
+    keep = np.zeros(len(score), bool)
+    keep[order[rank < n]] = True
+    return keep
+
+
 def _alternatives(r: ImageEstimate, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ranking score of each detection's pose (N,), its first ``m`` alternatives (N, m, 4, 4)
     and their scores (N, m); missing ones (fewer ranked hypotheses) have a NaN score."""
@@ -618,7 +634,8 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     coarse_model = _given_model(coarse_model, SHIPPED_COARSE, "coarse", wants["coarse"] == "network")
     refiner_model = _given_model(refiner_model, SHIPPED_REFINER, "refiner", wants["refiner"] == "network")
     run_conf = decide(conf, coarse_model=coarse_model, refiner_model=refiner_model, has_depth=has_depth)
-    for k in ("mask_weight", "mask_band", "scorer_scope", "scorer_keep", "score"):  # recorded only when changed
+    # recorded only when changed
+    for k in ("mask_weight", "mask_band", "scorer_scope", "scorer_keep", "score", "max_per_object"):
         if run_conf.get(k) == CONFS["default"][k]:
             run_conf.pop(k)
     n_hyp = int(run_conf.pop("hypotheses", 1))
@@ -681,7 +698,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
     images = [(sid, im) for sid in scene_ids for im in ds.image_ids(sid)]
     groups = dets.groupby(["scene_id", "im_id"]).indices
     rows_T, rows_meta, timing, steps, rows_alt = [], [], [], {}, []
-    skipped_boxes = 0
+    skipped_boxes = dropped_by_object = 0
     try:
         for sid, im_id in progress_bar(images, desc="estimate", unit="image", enabled=progress):
             idx = groups.get((sid, im_id))
@@ -704,16 +721,22 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             masks = detection_masks(d, (H, W), source) if use_masks else None
             r = est.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy(), masks=masks)
             dt = time.perf_counter() - t0
-            rows_T.append(r.T)
-            if n_hyp > 1:
-                rows_alt.append(_alternatives(r, n_hyp - 1))
+            n_estimated = len(d)
             score = d["score"].to_numpy(np.float64)
             if r.pose_score is not None:  # score "pose": the detection's x its pose's verification score
                 score = score * r.pose_score
+            keep = np.ones(len(d), bool)
+            if run_conf.get("max_per_object", 0):  # the best candidates of each object in this image
+                keep = best_per_object(d["obj_id"].to_numpy(), score, run_conf["max_per_object"])
+                dropped_by_object += int((~keep).sum())
+            rows_T.append(r.T[keep])
+            if n_hyp > 1:
+                rows_alt.append(tuple(a[keep] for a in _alternatives(r, n_hyp - 1)))
+            d, score = d[keep], score[keep]
             rows_meta.append(pd.DataFrame({"scene_id": sid, "im_id": im_id, "obj_id": d["obj_id"].to_numpy(),
                                            "score": score, "time": dt,
                                            "det_index": d.index.to_numpy()}))
-            timing.append({"scene_id": sid, "im_id": im_id, "detections": len(d), "time_s": dt,
+            timing.append({"scene_id": sid, "im_id": im_id, "detections": n_estimated, "time_s": dt,
                            **{f"{k}_s": v for k, v in r.times.items()}})
             if keep_steps:
                 for name, T in r.steps.items():
@@ -722,6 +745,9 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         est.close()
     if skipped_boxes:
         log(f"estimate: skipped {skipped_boxes} detection(s) whose box has less than 2 px inside the image")
+    if dropped_by_object:
+        log(f"estimate: kept the best {run_conf['max_per_object']} candidate(s) of each object per image by "
+            f"{'pose score' if run_conf.get('score') == 'pose' else 'score'}: {dropped_by_object} dropped")
     meta = pd.concat(rows_meta, ignore_index=True) if rows_meta else pd.DataFrame(
         columns=["scene_id", "im_id", "obj_id", "score", "time", "det_index"])
     T_all = np.concatenate(rows_T) if rows_T else np.zeros((0, 4, 4))
@@ -734,7 +760,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
         "method": describe(run_conf), "conf": run_conf, "inputs": inputs, "images": len(images),
         "images_with_detections": n_img, "detections": int(len(res)), "skipped_boxes": skipped_boxes,
         "time_per_image_s": float(busy["time_s"].mean()) if n_img else 0.0,
-        "time_per_detection_s": float(busy["time_s"].sum() / max(len(res), 1)),
+        "time_per_detection_s": float(busy["time_s"].sum() / max(int(busy["detections"].sum()), 1)) if n_img else 0.0,
         "time_total_s": round(time.perf_counter() - t_start, 3),
     }
     out.parent.mkdir(parents=True, exist_ok=True)
