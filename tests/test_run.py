@@ -200,9 +200,10 @@ def test_set_overrides_reach_the_stage_settings(tmp_path, candidates):
                                  "--config", "onboarded"])
     assert r.exit_code == 0, r.output
     confs = json.loads((tmp_path / "r2" / "run.json").read_text())["confs"]
-    assert confs["detect"]["classifier"] == "none" and confs["detect"]["max_per_object"] == 1
+    assert confs["detect"]["classifier"] == "none" and confs["detect"]["max_per_object"] == 3
     assert confs["detect"]["min_score"] == 0.01 and confs["detect"]["max_per_image"] == 100
     assert confs["detect"]["refine_boxes"] == 2 and confs["estimate"]["box_scales"] == [0.87, 1.0, 1.15]
+    assert confs["estimate"]["score"] == "pose" and confs["estimate"]["max_per_object"] == 1
     assert confs["match"] == run_stage.resolve_confs("default")["match"]
 
 

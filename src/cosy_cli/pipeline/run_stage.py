@@ -52,13 +52,15 @@ CONFS: dict[str, dict] = {
               "evaluate": "bop19"},
     # Boxes from a detector onboarded from meshes alone (`cosy train detector/classifier --preset real`):
     # many right boxes score low and fit loosely. Up to 100 proposals down to score 0.01 for the box
-    # classifier, whose box head moves each twice; the best box of each object in each image (one
-    # instance of each object per image, as in LM-O and YCB-V); each template hypothesis also verified
-    # nearer and farther; a classifier with a mask head adds each detection's mask (the detect default), which
-    # the verification uses. Chosen on the odd lmo_dev scenes (docs/results.md).
-    "onboarded": {"detect": {"min_score": 0.01, "max_per_image": 100, "refine_boxes": 2, "max_per_object": 1},
-                  "estimate": {"box_scales": [0.87, 1.0, 1.15]}, "match": "paper", "refine": None,
-                  "evaluate": "bop19"},
+    # classifier, whose box head moves each twice; the best 3 boxes of each object in each image go
+    # through stage 1 and the one whose pose fits the image best is kept (score "pose": the detection's
+    # x the verification's, the learned scorer's with --scorer; one instance of each object per image, as
+    # in LM-O and YCB-V); each template hypothesis also verified nearer and farther; a classifier with a
+    # mask head adds each detection's mask (the detect default), which the verification uses. Chosen on
+    # the odd lmo_dev scenes (docs/results.md).
+    "onboarded": {"detect": {"min_score": 0.01, "max_per_image": 100, "refine_boxes": 2, "max_per_object": 3},
+                  "estimate": {"box_scales": [0.87, 1.0, 1.15], "score": "pose", "max_per_object": 1},
+                  "match": "paper", "refine": None, "evaluate": "bop19"},
     # Quicker: fewer template hypotheses, fewer ICP iterations, no VSD (BOP19 AR from MSSD/MSPD).
     "fast": {"detect": "default", "estimate": {"top_k": 3, "icp_screen": 0, "icp_iterations": 10}, "match": "paper",
              "refine": None, "evaluate": {"vsd": False}},
