@@ -588,16 +588,9 @@ def calibration_feeds(ck_config: dict, n: int = 64, per_feed: int = 8, seed: int
     calibrating its int8 convolutions: ``n`` crops of scenes rendered as the run's training drew
     them (its objects, camera, crop jitter and appearance; photographs where the run's folder of
     them is still there), from ``seed``."""
-    from .train import load_dataset_objects
+    from .train import run_objects
 
-    c = dict(ck_config)
-    src = c.get("models") or c.get("dataset")
-    if not src or not Path(src).exists():
-        raise CosyError("int8 calibration renders the run's objects, and its models folder is gone", path=src)
-    meshes, _, _ = load_dataset_objects(None if c.get("models") else src, c.get("models"))
-    K, size = np.asarray(c["camera_K"], np.float64), tuple(int(v) for v in c["image_size"])
-    if c.get("backgrounds") and not Path(c["backgrounds"]).is_dir():
-        c["backgrounds"] = None
+    meshes, K, size, c = run_objects(ck_config)
     sampler = CropSampler(meshes, K, size, c, sorted(meshes), np.random.SeedSequence([seed, 7]),
                           appearance=appearance_kwargs(c, lambda *_: None))
     try:
@@ -615,27 +608,13 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     ``precision`` "int8" (EfficientNet-Lite0 classifiers): its backbone's convolutions in int8,
     calibrated on crops rendered as in training (:func:`calibration_feeds`; about 2x faster on a
     CPU); None or "fp32": float32."""
-    from ..onnxrt import quantize_convs
     from .classifier import BOX_DELTA_SCALE, METADATA_KEY, export_onnx
+    from .train import export_precision
 
     net, ck = load_run(run)
-    if precision not in (None, "fp32", "int8"):
-        raise CosyError(f"precision must be int8 or fp32, got {precision!r}")
-    if precision == "int8" and net.config.arch != "lite0":
-        raise CosyError(f"int8 is for a classifier on EfficientNet-Lite0 (this run's arch: {net.config.arch})",
-                        path=run)
-    meta = {"training_steps": int(ck["step"]), "training_crops": int(ck["samples"])}
-    if precision == "int8":  # the float32 export, quantized, then in place: out is never a half-done file
-        from ..io.atomic import atomic_path
-
-        feeds = calibration_feeds(ck["config"])
-        with atomic_path(out) as tmp:
-            export_onnx(net, tmp, meta)
-            # all the backbone's stages: the fixed first three alone gain nothing (measured: 1.0x)
-            n = quantize_convs(tmp, feeds, ("/stem/", "/blocks."), METADATA_KEY)
-        log(f"export: {n} convolutions of the EfficientNet-Lite0 backbone in int8 (calibrated on 64 rendered crops)")
-    else:
-        export_onnx(net, out, meta)
+    export_precision(export_onnx, net, Path(out), {"training_steps": int(ck["step"]), "training_crops": int(ck["samples"])},
+                     precision, net.config.arch, lambda: calibration_feeds(ck["config"]), METADATA_KEY,
+                     "64 rendered crops", run, log)
     c, cfg = ck["config"], net.config
     n = sum(p.numel() for p in net.parameters())
     return loop.write_model_card(out, [

@@ -621,12 +621,33 @@ def _sampling_lines(c: dict) -> list[str]:
     return lines
 
 
-def calibration_images(ck_config: dict, n: int = 16, per_feed: int = 4, seed: int = 0) -> list[dict]:
-    """Inputs of an exported detector (``{"image": (per_feed, 3, h, w) float32 in [0, 1]}``) for
-    calibrating its int8 convolutions: ``n`` scenes rendered as the run's training drew them (its
-    objects, camera and appearance; photographs where the run's folder of them is still there)."""
-    from .data import DetectionSampleGenerator
+def export_precision(export_fn, net, out: Path, meta: dict, precision: str | None, arch: str, calibrate,
+                     key: str, calibrated_on: str, run, log: Callable[[str], None] = print) -> None:
+    """Export ``net`` with ``export_fn(net, path, meta)`` to ``out``: in float32 (``precision`` None
+    or "fp32"), or (``int8``, an EfficientNet-Lite0 network: ``arch`` "lite0") with its backbone's
+    convolutions in int8 (:func:`cosy_cli.onnxrt.quantize_convs`, calibrated on ``calibrate()``'s
+    inputs) and only then put in place: ``out`` is never a half-done file."""
+    from ..onnxrt import quantize_convs
 
+    if precision not in (None, "fp32", "int8"):
+        raise CosyError(f"precision must be int8 or fp32, got {precision!r}")
+    if precision != "int8":
+        export_fn(net, out, meta)
+        return
+    if arch != "lite0":
+        raise CosyError(f"int8 is for a network on EfficientNet-Lite0 (this run's backbone: {arch})", path=run)
+    feeds = calibrate()
+    with atomic_path(out) as tmp:
+        export_fn(net, tmp, meta)
+        # all the backbone's stages: the fixed first three alone gain nothing (measured: 1.0x)
+        n = quantize_convs(tmp, feeds, ("/stem/", "/blocks."), key)
+    log(f"export: {n} convolutions of the EfficientNet-Lite0 backbone in int8 (calibrated on {calibrated_on})")
+
+
+def run_objects(ck_config: dict) -> tuple[dict, np.ndarray, tuple, dict]:
+    """(meshes, K, image size, settings) of a detector or classifier run's recorded settings, to
+    render scenes as its training did (the settings without the photographs when their folder is
+    gone); a CosyError when its models folder is gone."""
     c = dict(ck_config)
     src = c.get("models") or c.get("dataset")
     if not src or not Path(src).exists():
@@ -635,6 +656,16 @@ def calibration_images(ck_config: dict, n: int = 16, per_feed: int = 4, seed: in
     K, size = np.asarray(c["camera_K"], np.float64), tuple(int(v) for v in c["image_size"])
     if c.get("backgrounds") and not Path(c["backgrounds"]).is_dir():
         c["backgrounds"] = None
+    return meshes, K, size, c
+
+
+def calibration_images(ck_config: dict, n: int = 16, per_feed: int = 4, seed: int = 0) -> list[dict]:
+    """Inputs of an exported detector (``{"image": (per_feed, 3, h, w) float32 in [0, 1]}``) for
+    calibrating its int8 convolutions: ``n`` scenes rendered as the run's training drew them (its
+    objects, camera and appearance; photographs where the run's folder of them is still there)."""
+    from .data import DetectionSampleGenerator
+
+    meshes, K, size, c = run_objects(ck_config)
     mcfg = model_config(c, sorted(meshes))
     gen = DetectionSampleGenerator(meshes, K, size, mcfg.input_size, seed=np.random.SeedSequence([seed, 7]),
                                    obj_ids=sorted(meshes), max_objects=c["max_objects"], p_table=c["p_table"],
@@ -653,25 +684,12 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     ``precision`` "int8" (EfficientNet-Lite0 detectors): its backbone's convolutions in int8,
     calibrated on 16 scenes rendered as in training (:func:`calibration_images`); None or
     "fp32": float32."""
-    from ..onnxrt import quantize_convs
-
     out = Path(out)
     net, ck = load_run(run)
     c = ck["config"]
-    if precision not in (None, "fp32", "int8"):
-        raise CosyError(f"precision must be int8 or fp32, got {precision!r}")
-    if precision == "int8" and net.config.backbone != "lite0":
-        raise CosyError(f"int8 is for a detector on EfficientNet-Lite0 (this run's backbone: {net.config.backbone})",
-                        path=run)
-    meta = {"training_steps": int(ck["step"]), "training_images": int(ck["samples"])}
-    if precision == "int8":  # the float32 export, quantized, then in place: out is never a half-done file
-        feeds = calibration_images(c)
-        with atomic_path(out) as tmp:
-            export_onnx(net, tmp, meta)
-            n = quantize_convs(tmp, feeds, ("/stem/", "/blocks."), METADATA_KEY)
-        log(f"export: {n} convolutions of the EfficientNet-Lite0 backbone in int8 (calibrated on 16 rendered scenes)")
-    else:
-        export_onnx(net, out, meta)
+    export_precision(export_onnx, net, out, {"training_steps": int(ck["step"]), "training_images": int(ck["samples"])},
+                     precision, net.config.backbone, lambda: calibration_images(c), METADATA_KEY, "16 rendered scenes",
+                     run, log)
     cfg = net.config
     loss = ck.get("loss") or {}
     loss_txt = (f"{loss['total']:.3f} (heatmap focal {loss['heat']:.3f}, box 1 - GIoU {loss['box']:.3f})"
@@ -715,5 +733,5 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     return out
 
 
-__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "export", "calibration_images", "export_onnx", "load_run", "run_kind", "read_log",
+__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "export", "calibration_images", "run_objects", "export_precision", "export_onnx", "load_run", "run_kind", "read_log",
            "write_plot", "model_config", "load_dataset_objects"]
