@@ -204,6 +204,9 @@ def test_set_overrides_reach_the_stage_settings(tmp_path, candidates):
     assert confs["detect"]["min_score"] == 0.01 and confs["detect"]["max_per_image"] == 100
     assert confs["detect"]["refine_boxes"] == 2 and confs["estimate"]["box_scales"] == [0.87, 1.0, 1.15]
     assert confs["estimate"]["score"] == "pose" and confs["estimate"]["max_per_object"] == 1
+    fast = run_stage.resolve_confs("onboarded-fast")
+    assert fast["detect"]["max_per_image"] == 80 and fast["detect"]["refine_top"] == 15
+    assert fast["estimate"] == run_stage.resolve_confs("onboarded")["estimate"]
     assert confs["match"] == run_stage.resolve_confs("default")["match"]
 
 
