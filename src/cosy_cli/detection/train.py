@@ -622,26 +622,30 @@ def _sampling_lines(c: dict) -> list[str]:
 
 
 def export_precision(export_fn, net, out: Path, meta: dict, precision: str | None, arch: str, calibrate,
-                     key: str, calibrated_on: str, run, log: Callable[[str], None] = print) -> None:
+                     key: str, calibrated_on: str, run, log: Callable[[str], None] = print) -> list[str]:
     """Export ``net`` with ``export_fn(net, path, meta)`` to ``out``: in float32 (``precision`` None
     or "fp32"), or (``int8``, an EfficientNet-Lite0 network: ``arch`` "lite0") with its backbone's
     convolutions in int8 (:func:`cosy_cli.onnxrt.quantize_convs`, calibrated on ``calibrate()``'s
-    inputs) and only then put in place: ``out`` is never a half-done file."""
+    inputs, ``calibrated_on`` says what they are) and only then put in place: ``out`` is never a
+    half-done file. Returns the model card's lines about the precision (none for float32)."""
     from ..onnxrt import quantize_convs
+    from .efficientnet_lite import ONNX_NODE_PARTS
 
     if precision not in (None, "fp32", "int8"):
         raise CosyError(f"precision must be int8 or fp32, got {precision!r}")
     if precision != "int8":
         export_fn(net, out, meta)
-        return
+        return []
     if arch != "lite0":
         raise CosyError(f"int8 is for a network on EfficientNet-Lite0 (this run's backbone: {arch})", path=run)
     feeds = calibrate()
     with atomic_path(out) as tmp:
         export_fn(net, tmp, meta)
         # all the backbone's stages: the fixed first three alone gain nothing (measured: 1.0x)
-        n = quantize_convs(tmp, feeds, ("/stem/", "/blocks."), key)
+        n = quantize_convs(tmp, feeds, ONNX_NODE_PARTS, key)
     log(f"export: {n} convolutions of the EfficientNet-Lite0 backbone in int8 (calibrated on {calibrated_on})")
+    return [f"- precision: the backbone's convolutions in int8 (per-channel weights, activations calibrated on "
+            f"{calibrated_on}), the rest float32"]
 
 
 def run_objects(ck_config: dict) -> tuple[dict, np.ndarray, tuple, dict]:
@@ -687,9 +691,9 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
     out = Path(out)
     net, ck = load_run(run)
     c = ck["config"]
-    export_precision(export_onnx, net, out, {"training_steps": int(ck["step"]), "training_images": int(ck["samples"])},
-                     precision, net.config.backbone, lambda: calibration_images(c), METADATA_KEY, "16 rendered scenes",
-                     run, log)
+    card_precision = export_precision(
+        export_onnx, net, out, {"training_steps": int(ck["step"]), "training_images": int(ck["samples"])}, precision,
+        net.config.backbone, lambda: calibration_images(c), METADATA_KEY, "16 rendered scenes", run, log)
     cfg = net.config
     loss = ck.get("loss") or {}
     loss_txt = (f"{loss['total']:.3f} (heatmap focal {loss['heat']:.3f}, box 1 - GIoU {loss['box']:.3f})"
@@ -728,10 +732,9 @@ def export(run: str | Path, out: str | Path, accuracy: str | None = None, log: C
         f"({c['schedule']}, {c['warmup']} warm-up steps), EMA {c['ema']:g} (exported), seed {c['seed']}",
         *_sampling_lines(c),
         f"- final training loss (last logged mean): {loss_txt}",
-    ] + (["- precision: the backbone's convolutions in int8 (per-channel weights, activations calibrated on 16 "
-          "rendered scenes), the rest float32"] if precision == "int8" else []), ck, accuracy, log)
+    ] + card_precision, ck, accuracy, log)
     return out
 
 
-__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "export", "calibration_images", "run_objects", "export_precision", "export_onnx", "load_run", "run_kind", "read_log",
-           "write_plot", "model_config", "load_dataset_objects"]
+__all__ = ["DEFAULT_CONF", "resolve_conf", "main", "export", "calibration_images", "run_objects", "export_precision",
+           "export_onnx", "load_run", "run_kind", "read_log", "write_plot", "model_config", "load_dataset_objects"]

@@ -429,6 +429,7 @@ def cameras_from_gt_objects(gt: pd.DataFrame, T_gt: np.ndarray, outlier_mm: floa
     gt: rows (scene_id, im_id, obj_id) aligned with T_gt (n, 4, 4) T_cam_obj (mm). Returns
     ({(scene_id, im_id): T_cam_world (4, 4)}, {(scene_id, im_id): spread_mm})."""
     from ..geometry.poses import invert
+    from ..io.bop import nearest_rotation
 
     cams, spread = {}, {}
     keys = gt[["scene_id", "im_id", "obj_id"]].to_numpy(dtype=np.int64)
@@ -453,9 +454,8 @@ def cameras_from_gt_objects(gt: pd.DataFrame, T_gt: np.ndarray, outlier_mm: floa
             d = np.linalg.norm(centres - np.median(centres, 0), axis=1)
             keep = d <= max(outlier_mm, 3.0 * float(np.median(d)))
             M, centres = M[keep], centres[keep]
-            U, _, Vt = np.linalg.svd(M[:, :3, :3].sum(0))
             T = np.eye(4)
-            T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+            T[:3, :3] = nearest_rotation(M[:, :3, :3].sum(0))
             T[:3, 3] = M[:, :3, 3].mean(0)
             cams[(int(s), int(im))] = T
             if int(im) != ref:

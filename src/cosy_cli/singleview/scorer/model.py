@@ -176,9 +176,6 @@ def export_onnx(net: nn.Module, path, card: dict) -> None:
         stamp_card(tmp, METADATA_KEY, card)
 
 
-TRUNK_PREFIXES = ("/stem", "/blocks")  # ONNX node names of Lite0ScorerNet's frozen trunk (torch's export)
-
-
 def quantize_trunk(path, feeds) -> int:
     """Rewrite the lite0 scorer at ``path`` (an :func:`export_onnx` file) with its frozen trunk's
     convolutions in int8 (:func:`cosy_cli.onnxrt.quantize_convs`: weights per output channel,
@@ -190,6 +187,7 @@ def quantize_trunk(path, feeds) -> int:
 
     import onnx
 
+    from ...detection.efficientnet_lite import ONNX_NODE_PARTS
     from ...onnxrt import quantize_convs
 
     model = onnx.load(str(path))
@@ -204,4 +202,4 @@ def quantize_trunk(path, feeds) -> int:
     feeds = list(feeds)
     if not feeds:
         raise ValueError("quantize_trunk: no calibration inputs")
-    return quantize_convs(path, feeds, TRUNK_PREFIXES, METADATA_KEY)
+    return quantize_convs(path, feeds, ONNX_NODE_PARTS, METADATA_KEY)  # the trunk: its frozen Lite0 layers
