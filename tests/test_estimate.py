@@ -246,3 +246,45 @@ def test_pose_score_ranks_the_box_whose_pose_fits_first(tmp_path, templates_dir,
     assert sum(int(row.split(",")[2]) for row in timing[1:]) == len(dets)  # every detection was estimated
     r = _run(args + ["--score", "best", "--out", str(tmp_path / "x.csv")])
     assert r.exit_code == 2 and "best" in r.output
+
+
+def test_rebox_estimates_again_from_the_box_of_the_pose(tmp_path, templates_dir, ds):
+    """--rebox 1: each candidate is estimated again from the box its pose projects to, and the pose
+    whose verification score is higher is kept. The boxes given here lose their top 35 % (as the
+    onboarded detector's boxes lose the thin top of LM-O's watering can and glue): no candidate's
+    score goes down, some poses are replaced, and the poses come nearer the GT (ADI, RGB only)."""
+    gt = detections_from_gt(ds, [1], 0.1)
+    gt = gt[gt.im_id.isin([0, 1, 2])].reset_index(drop=True)
+    dets = [{"scene_id": 1, "image_id": int(r.im_id), "category_id": int(r.obj_id), "score": 0.8,
+             "bbox": [float(r.x), float(r.y + 0.35 * r.h), float(r.w), float(0.65 * r.h)], "time": -1.0}
+            for r in gt.itertuples()]
+    det_path = tmp_path / "cut.json"
+    det_path.write_text(json.dumps(dets))
+    args = ["estimate", "--scene", str(SCENE), "--detections", str(det_path), "--coarse", "templates",
+            "--refiner", "none", "--depth-refine", "none", "--verify-top", "16", "--rgb-refine", "contour",
+            "--top-k", "2", "--score", "pose", "--templates-dir", str(templates_dir)]
+    tables = {}
+    for n in (0, 1):
+        out = tmp_path / f"rebox{n}.csv"
+        r = _run(args + ["--rebox", str(n), "--out", str(out)])
+        assert r.exit_code == 0, r.output
+        assert ("rebox:" in r.output) == (n > 0), r.output
+        tables[n] = bop.read_results(out)
+        conf = json.loads((tmp_path / f"rebox{n}.json").read_text())["conf"]
+        assert conf.get("rebox", 0) == n and (n > 0 or "rebox" not in conf)  # recorded only when used
+    t0, t1 = tables[0], tables[1]
+    assert len(t0) == len(t1) == len(dets)
+    s0, s1 = t0.table["score"].to_numpy(), t1.table["score"].to_numpy()  # rows in the file's order
+    assert (s1 >= s0 - 1e-9).all()
+    assert (s1 > s0 + 1e-9).any()
+    db = ObjectDatabase.from_models_dir(SAMPLES / "models")
+    scene_gt = ds.scene_gt(1)
+
+    def err(t):
+        return np.array([adi(T, scene_gt[int(g.im_id)][int(g.gt_index)].T_cam_obj, db[int(g.obj_id)].points)[0]
+                         / db[int(g.obj_id)].diameter for T, g in zip(t.T_cam_obj, gt.itertuples())])
+    e0, e1 = err(t0), err(t1)
+    # (measured: median ADI 0.165 -> 0.127 of the diameter, within 0.1 of it 25 % -> 46 %; 19 of 24 replaced)
+    assert np.median(e1) < np.median(e0) and (e1 < 0.1).mean() > (e0 < 0.1).mean(), (e0, e1)
+    r = _run(args + ["--rebox", "4", "--out", str(tmp_path / "x.csv")])
+    assert r.exit_code == 2 and "rebox" in r.output

@@ -139,3 +139,27 @@ def test_symmetric_distance_batched_many(rng):
     assert d.shape == (5000,) and np.allclose(d, 0)
     d2 = G.symmetric_distance(T1[:, None], T1[None, :7], X, S)
     assert d2.shape == (5000, 7)
+
+
+def test_projected_boxes_bound_the_projection_in_pixel_edge_coordinates():
+    """The box of a posed point set: the extreme projections + 0.5 (OpenCV centres at integers,
+    pixel i spans [i, i + 1)), clipped to the image; NaN behind the camera; lists of sets of
+    different sizes give the same boxes as each set alone."""
+    from cosy_cli.geometry.camera import projected_boxes
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    P = np.array([[x, y, z] for x in (-10.0, 10.0) for y in (-20.0, 20.0) for z in (-5.0, 5.0)])
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 1000.0]
+    b = projected_boxes(P[None], T[None], K, 640, 480)[0]
+    # nearest face (z = 995 mm) gives the extremes: 320 +- 10 * 500 / 995, 240 +- 20 * 500 / 995
+    np.testing.assert_allclose(b, [320.5 - 5000 / 995, 240.5 - 10000 / 995, 320.5 + 5000 / 995, 240.5 + 10000 / 995])
+    T2 = T.copy()
+    T2[:3, 3] = [-330.0 * 2, 0.0, 1000.0]  # far to the left: clipped at x = 0
+    T3 = T.copy()
+    T3[2, 3] = -5.0  # straddles the camera plane
+    out = projected_boxes([P, P[:2], P], np.stack([T, T, T2]), K, 640, 480)
+    np.testing.assert_allclose(out[0], b)
+    np.testing.assert_allclose(out[1], projected_boxes(P[None, :2], T[None], K, 640, 480)[0])
+    assert out[2, 0] == out[2, 2] == 0.0
+    assert np.isnan(projected_boxes(P[None], T3[None], K, 640, 480)).all()

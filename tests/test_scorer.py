@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from cosy_cli.cli.main import cli
 from cosy_cli.evaluation import pose_error
 from cosy_cli.geometry.rotations import axis_angle_to_matrix
+from cosy_cli.singleview import estimate_stage
 from cosy_cli.training.scorer_target import ar_contribution, max_errors
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
@@ -123,6 +124,14 @@ def test_estimate_and_run_take_a_scorer(tmp_path, tiny_scorer):
     doc = json.loads((tmp_path / "c.json").read_text())
     assert doc["conf"]["scorer"] is True and doc["inputs"]["scorer_model"]["sha1"]
     assert "scorer_scope" not in doc["conf"]  # the default (rank) is not recorded
+    # rebox auto: 2 passes with a scorer (recorded, reported), none without one; --rebox 0 turns it off
+    assert doc["conf"]["rebox"] == estimate_stage.REBOX_WITH_SCORER and "rebox:" in r.output
+    r = _run(args + ["--scorer", str(out_scorer), "--rebox", "0", "--out", str(tmp_path / "r0.csv")])
+    assert r.exit_code == 0, r.output
+    assert "rebox" not in json.loads((tmp_path / "r0.json").read_text())["conf"] and "rebox:" not in r.output
+    r = _run(args + ["--out", str(tmp_path / "none.csv")])
+    assert r.exit_code == 0, r.output
+    assert "rebox" not in json.loads((tmp_path / "none.json").read_text())["conf"]
     r = _run(args + ["--scorer", str(out_scorer), "--scorer-scope", "all", "--out", str(tmp_path / "all.csv")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "all.json").read_text())["conf"]["scorer_scope"] == "all"

@@ -92,6 +92,9 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 @click.option("--max-per-object", type=click.IntRange(min=0), default=None,
               help="Keep the best N candidates of each object in each image, by their score (with --score pose: "
                    "the boxes whose poses fit the image best) [0: all].")
+@click.option("--rebox", type=click.IntRange(0, 3), default=None,
+              help="Passes that estimate each kept candidate again from the box its pose projects to and keep the "
+                   "pose whose verification score is higher (loose detector boxes) [0: off].")
 @click.option("--providers", type=click.Choice(["cpu", "cuda"]), default=None, help="onnxruntime provider [cpu].")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Crops per network call [32].")
 @click.option("--overwrite", is_flag=True, help="Recompute even if OUT exists and is up to date.")
@@ -99,7 +102,7 @@ def _method_or_model(value: str | None, methods: tuple, network: str = "network"
 def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, out, conf, coarse, refiner,
              depth_refine, refiner_iterations, top_k, icp_screen, hypotheses, verify_top, rgb_refine, box_scales, masks,
              mask_band, mask_weight, templates_dir, scorer_model, scorer_scope, scorer_keep, score, max_per_object,
-             providers,
+             rebox, providers,
              batch_size,
              overwrite) -> None:
     """Single-view 6D pose candidates for every detection (CosyPose stage 1).
@@ -119,7 +122,7 @@ def estimate(scene, dataset, split, scene_ids, models_dir, detections, from_gt, 
                                     rgb_refine=rgb_refine, providers=providers, masks=masks, box_scales=box_scales,
                                     batch_size=batch_size, mask_weight=mask_weight, mask_band=mask_band,
                                     scorer_scope=scorer_scope, scorer_keep=scorer_keep, score=score,
-                                    max_per_object=max_per_object)
+                                    max_per_object=max_per_object, rebox=rebox)
     estimate_stage.main(c, dataset, split, out, overwrite=overwrite, scene_ids=scene_ids,
                         detections=detections, from_gt=from_gt, models_dir=models_dir, coarse_model=coarse_model,
                         refiner_model=refiner_model, templates_dir=templates_dir, scorer_model=scorer_model,
