@@ -449,7 +449,7 @@ class Estimator:
                 res.times["icp"] += time.perf_counter() - t0
                 res.steps["refiner_icp"] = T.copy()
         res.T = T
-        if c.get("score", "detection") == "pose" or c.get("rebox", 0):
+        if c.get("score", "detection") == "pose" or c.get("rebox", 0) not in (0, "auto"):  # (auto: not resolved)
             t0 = time.perf_counter()
             res.pose_score = self.pose_score(rgb, K, boxes, obj_ids, T, masks, ranked if verified else None)
             res.times["pose_score"] = time.perf_counter() - t0
