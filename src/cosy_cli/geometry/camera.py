@@ -23,27 +23,23 @@ def project(points_cam: np.ndarray, K: np.ndarray, eps: float = 1e-9) -> np.ndar
 
 def projected_boxes(points, T_cam_obj: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
     """(N, 4) [x1, y1, x2, y2] px, pixel-edge coordinates (pixel i spans [i, i + 1)), of the
-    projections of N point sets ``points`` ((N, P, 3) or a list of (P_i, 3), object frame, mm) by
-    ``T_cam_obj`` (N, 4, 4) with K (3, 3), clipped to the width x height image. A row is NaN where
-    a pose is not finite or puts a point at or behind the camera's plane."""
+    projections of N point sets ``points`` ((N, P, 3), (P, 3) for all, or a list of (P_i, 3); object
+    frame, mm) by ``T_cam_obj`` (N, 4, 4) with K (3, 3), clipped to the width x height image. A row
+    is NaN where a pose is not finite or puts a point at or behind the camera's plane."""
     T = np.asarray(T_cam_obj, dtype=np.float64).reshape(-1, 4, 4)
-    out = np.full((len(T), 4), np.nan)
-    same = not isinstance(points, (list, tuple)) or len({np.shape(p) for p in points}) <= 1
-    groups = [np.arange(len(T))] if same else [np.array([i]) for i in range(len(T))]
-    for g in groups:
-        if not len(g):
-            continue
-        P = np.asarray(points, dtype=np.float64) if same else np.asarray(points[g[0]], dtype=np.float64)[None]
-        if P.ndim == 2:
-            P = np.broadcast_to(P, (len(T),) + P.shape)
-        pc = np.einsum("nij,npj->npi", T[g, :3, :3], P[g] if same else P) + T[g, None, :3, 3]
-        ok = np.all(np.isfinite(T[g].reshape(len(g), -1)), 1) & np.all(pc[..., 2] > 1e-6, 1)
-        uv = project(pc, K) + 0.5  # OpenCV pixel centres are at integers; edges at half-integers
-        box = np.concatenate([uv.min(1), uv.max(1)], 1)
-        box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0.0, float(width))
-        box[:, [1, 3]] = np.clip(box[:, [1, 3]], 0.0, float(height))
-        out[g[ok]] = box[ok]
-    return out
+    if isinstance(points, (list, tuple)):  # sets of different sizes: pad each with its first point
+        n = max((len(p) for p in points), default=0)
+        points = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points]
+        points = np.stack([np.concatenate([p, np.repeat(p[:1], n - len(p), 0)]) for p in points]) \
+            if points else np.zeros((0, 0, 3))
+    P = np.broadcast_to(np.asarray(points, dtype=np.float64), (len(T),) + np.shape(points)[-2:])
+    pc = np.einsum("nij,npj->npi", T[:, :3, :3], P) + T[:, None, :3, 3]
+    ok = np.all(np.isfinite(T.reshape(len(T), 16)), 1) & np.all(pc[..., 2] > 1e-6, 1)
+    uv = project(pc, K) + 0.5  # OpenCV pixel centres are at integers; edges at half-integers
+    box = np.concatenate([uv.min(1, initial=np.inf), uv.max(1, initial=-np.inf)], 1)
+    box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0.0, float(width))
+    box[:, [1, 3]] = np.clip(box[:, [1, 3]], 0.0, float(height))
+    return np.where(ok[:, None], box, np.nan)
 
 
 def backproject_depth(depth_mm: np.ndarray, K: np.ndarray) -> np.ndarray:

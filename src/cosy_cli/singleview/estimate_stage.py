@@ -768,10 +768,10 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
             r = est.estimate(rgb, depth, K, boxes, d["obj_id"].to_numpy(), masks=masks)
             dt = time.perf_counter() - t0
             n_estimated = len(d)
-            score = d["score"].to_numpy(np.float64)
+            det_score = score = d["score"].to_numpy(np.float64)
             pose_scored = run_conf.get("score", "detection") == "pose"
             if pose_scored:  # score "pose": the detection's x its pose's verification score
-                score = score * r.pose_score
+                score = det_score * r.pose_score
             keep = np.ones(len(d), bool)
             if run_conf.get("max_per_object", 0):  # the best candidates of each object in this image
                 keep = best_per_object(d["obj_id"].to_numpy(), score, run_conf["max_per_object"])
@@ -782,7 +782,7 @@ def main(conf: str | dict | None, dataset: str | Path, split: str, out: str | Pa
                 moved = rebox_pass(est, rgb, depth, K, boxes, d["obj_id"].to_numpy(), masks, r, moved)
                 reboxed += len(moved)
                 if pose_scored and len(moved):
-                    score[moved] = d["score"].to_numpy(np.float64)[moved] * r.pose_score[moved]
+                    score[moved] = det_score[moved] * r.pose_score[moved]
                 r.times["rebox"] = r.times.get("rebox", 0.0) + time.perf_counter() - t1
                 dt += time.perf_counter() - t1
             rows_T.append(r.T[keep])
