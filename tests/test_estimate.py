@@ -14,6 +14,7 @@ from cosy_cli.cli.main import cli
 from cosy_cli.detection.importers import detections_from_gt
 from cosy_cli.evaluation.pose_error import adi
 from cosy_cli.io import bop
+from cosy_cli.io import hypotheses as hyp_io
 from cosy_cli.io.dataset import BopDataset
 from cosy_cli.objects import ObjectDatabase
 from cosy_cli.singleview import estimate_stage
@@ -262,14 +263,15 @@ def test_rebox_estimates_again_from_the_box_of_the_pose(tmp_path, templates_dir,
     det_path.write_text(json.dumps(dets))
     args = ["estimate", "--scene", str(SCENE), "--detections", str(det_path), "--coarse", "templates",
             "--refiner", "none", "--depth-refine", "none", "--verify-top", "16", "--rgb-refine", "contour",
-            "--top-k", "2", "--score", "pose", "--templates-dir", str(templates_dir)]
-    tables = {}
+            "--top-k", "3", "--score", "pose", "--hypotheses", "3", "--templates-dir", str(templates_dir)]
+    tables, sidecars = {}, {}
     for n in (0, 1):
         out = tmp_path / f"rebox{n}.csv"
         r = _run(args + ["--rebox", str(n), "--out", str(out)])
         assert r.exit_code == 0, r.output
         assert ("rebox:" in r.output) == (n > 0), r.output
         tables[n] = bop.read_results(out)
+        sidecars[n] = hyp_io.read_hypotheses(hyp_io.sidecar_path(out), len(tables[n]))
         conf = json.loads((tmp_path / f"rebox{n}.json").read_text())["conf"]
         assert conf.get("rebox", 0) == n and (n > 0 or "rebox" not in conf)  # recorded only when used
     t0, t1 = tables[0], tables[1]
@@ -277,6 +279,17 @@ def test_rebox_estimates_again_from_the_box_of_the_pose(tmp_path, templates_dir,
     s0, s1 = t0.table["score"].to_numpy(), t1.table["score"].to_numpy()  # rows in the file's order
     assert (s1 >= s0 - 1e-9).all()
     assert (s1 > s0 + 1e-9).any()
+    # the sidecar: rank 0 is the row's pose; a replaced pose brings the runners-up of its own ranking
+    moved = ~np.all(np.isclose(t0.T_cam_obj, t1.T_cam_obj), axis=(1, 2))
+    assert moved.any() and not moved.all()
+    for n, t in tables.items():
+        det, rank, _, T = sidecars[n]
+        np.testing.assert_allclose(T[rank == 0][np.argsort(det[rank == 0])], t.T_cam_obj, atol=1e-3)
+    alt = {n: {(int(d), int(k)): T for d, k, T in zip(*sidecars[n][:2], sidecars[n][3]) if k > 0} for n in (0, 1)}
+    for i in range(len(dets)):
+        same = all(np.allclose(alt[0][(i, k)], alt[1][(i, k)]) for k in (1, 2)
+                   if (i, k) in alt[0] and (i, k) in alt[1])
+        assert same != moved[i], i
     db = ObjectDatabase.from_models_dir(SAMPLES / "models")
     scene_gt = ds.scene_gt(1)
 

@@ -584,7 +584,8 @@ def rebox_pass(est: "Estimator", rgb: np.ndarray, depth, K: np.ndarray, boxes: n
     takes the new pose where its verification score is higher. A detector whose boxes are loose
     (on real LM-O the onboarded one cuts the thin top of the watering can and the glue) gives
     templates and verification a crop that fits no pose; the box of a roughly right pose fits the
-    object better. ``r.T``, ``r.pose_score`` and ``r.best_score`` are updated in place; returns the
+    object better. ``r.T``, ``r.pose_score``, ``r.best_score`` and the runners-up (``r.alternatives``,
+    ``r.alt_score``: those of the ranking the new pose came from) are updated in place; returns the
     replaced indices."""
     from ..geometry.camera import projected_boxes
 
@@ -603,6 +604,9 @@ def rebox_pass(est: "Estimator", rgb: np.ndarray, depth, K: np.ndarray, boxes: n
     r.T[moved], r.pose_score[moved] = r2.T[better], r2.pose_score[better]
     if r.best_score is not None and r2.best_score is not None:  # the sidecar's rank 0 is the row's pose
         r.best_score[moved] = r2.best_score[better]
+    if r.alternatives is not None and r2.alternatives is not None \
+            and r.alternatives.shape[1:] == r2.alternatives.shape[1:]:  # its runners-up: the same ranking's
+        r.alternatives[moved], r.alt_score[moved] = r2.alternatives[better], r2.alt_score[better]
     return moved
 
 
